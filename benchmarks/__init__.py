@@ -1,0 +1,1 @@
+"""Measuring and reporting: profiler, benchmark runner, leaderboard and speed benchmarks."""

@@ -1,0 +1,73 @@
+"""Summaries of what a recording holds, for ``aaute info``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from datamodules.formats import open_recording
+
+
+def _rate(timestamps: np.ndarray) -> float:
+    return float(1.0 / np.median(np.diff(timestamps))) if len(timestamps) > 1 else float("nan")
+
+
+def _gaps(timestamps: np.ndarray, factor: float = 2.0) -> int:
+    """Number of steps longer than ``factor`` times the median step."""
+    if len(timestamps) < 3:
+        return 0
+    steps = np.diff(timestamps)
+    return int(np.count_nonzero(steps > factor * np.median(steps)))
+
+
+def describe(path: Path, sample_frames: int = 5) -> dict[str, Any]:
+    """Streams, rates, spans and counts of one recording (LiDAR point counts from a few frames)."""
+    recording = open_recording(path)
+    start, end = recording.time_span()
+    row: dict[str, Any] = {
+        "recording": str(path.name),
+        "sequence": recording.sequence_id,
+        "drone": recording.drone or "-",
+        "span_s": round(end - start, 2),
+    }
+    audio = recording.audio
+    row["audio"] = (f"{audio.num_channels}ch {audio.sample_rate:g}Hz {audio.duration:.1f}s"
+                    if audio is not None else "-")
+    for sensor in ("mid360", "avia"):
+        clouds = recording.lidar.get(sensor)
+        if clouds is None or len(clouds) == 0:
+            row[sensor] = "-"
+            continue
+        picks = np.linspace(0, len(clouds) - 1, min(sample_frames, len(clouds))).astype(int)
+        mean_points = float(np.mean([len(clouds[int(i)]) for i in picks]))
+        row[sensor] = (f"{len(clouds)} @{_rate(clouds.timestamps):.1f}Hz ~{mean_points:.0f}pts"
+                       f"{'' if not _gaps(clouds.timestamps) else f' gaps:{_gaps(clouds.timestamps)}'}")
+    frames = recording.frames
+    row["camera"] = f"{len(frames)} @{_rate(frames.timestamps):.1f}Hz" if frames is not None and len(frames) else "-"
+    for name, track in (("ground_truth", recording.ground_truth), ("pseudo_label", recording.pseudo_labels)):
+        if track is None:
+            row[name] = "-"
+        else:
+            valid = int(track.valid.sum())
+            gaps = _gaps(track.timestamps[track.valid])
+            row[name] = f"{valid}/{len(track)} @{_rate(track.timestamps):.1f}Hz gaps:{gaps}"
+    audio_meta = recording.meta.get("audio")
+    snr = audio_meta.get("snr_db_mean") if isinstance(audio_meta, dict) else None
+    row["snr_db"] = "-" if snr is None else f"{snr:.1f}"
+    row["MB"] = f"{path.stat().st_size / 1e6:.1f}" if path.is_file() else "-"
+    return row
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    """A plain-text table (one row per recording), aligned for terminals."""
+    if not rows:
+        return "(no recordings)"
+    columns = list(rows[0])
+    cells = [[str(row.get(c, "")) for c in columns] for row in rows]
+    widths = [max(len(c), *(len(r[i]) for r in cells)) for i, c in enumerate(columns)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(columns, widths, strict=True))]
+    lines.append("  ".join("-" * w for w in widths))
+    lines += ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)) for r in cells]
+    return "\n".join(lines)

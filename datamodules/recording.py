@@ -1,0 +1,324 @@
+"""The in-memory data model of one flight: audio, LiDAR scans, camera frames and tracks.
+
+A :class:`Recording` is what every reader produces and every later stage (teacher, DataModule,
+benchmark) consumes. Large streams are accessed through small lazy interfaces, so a reader can
+serve one 2 s window of a 10-minute recording without loading the rest: :class:`AudioStream`
+reads sample ranges, :class:`PointCloudStream` and :class:`ImageStream` read single frames.
+In-memory implementations (``Array*``) back the simulator and the tests.
+
+Conventions: metres, seconds, Hz; timestamps are float64 seconds (ROS/Unix time); audio is
+float32 in digital full-scale units, channels x samples.
+"""
+
+from __future__ import annotations
+
+import io
+from abc import ABC, abstractmethod
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+DRONE_TYPES = ("avata", "m300", "mavic2", "mavic3", "phantom4")
+LIDAR_SENSORS = ("mid360", "avia")
+
+#: Values of the per-point ``origin`` field: what produced each LiDAR return (simulated data only).
+ORIGIN_BACKGROUND, ORIGIN_DRONE, ORIGIN_FALSE = 0, 1, 2
+
+
+class RecordingError(ValueError):
+    """A recording (file or folder) does not hold what was expected."""
+
+
+def seconds_to_ns(t: np.ndarray | float) -> np.ndarray:
+    """Float64 seconds to int64 nanoseconds, exact to the float's precision.
+
+    Splitting whole seconds from the fraction avoids the 256 ns rounding of ``t * 1e9`` at Unix
+    epochs, so :func:`ns_to_seconds` gives back the very same float64.
+    """
+    t = np.asarray(t, dtype=np.float64)
+    whole = np.floor(t)
+    frac_ns = np.rint((t - whole) * 1e9).astype(np.int64)
+    return whole.astype(np.int64) * 1_000_000_000 + frac_ns
+
+
+def ns_to_seconds(ns: np.ndarray | int) -> np.ndarray:
+    """Int64 nanoseconds to float64 seconds (inverse of :func:`seconds_to_ns`)."""
+    ns = np.asarray(ns, dtype=np.int64)
+    whole, frac = np.divmod(ns, 1_000_000_000)
+    return whole.astype(np.float64) + frac.astype(np.float64) / 1e9
+
+
+def check_monotonic(timestamps: np.ndarray, what: str, strict: bool = True) -> None:
+    """Raise :class:`RecordingError` naming ``what`` if timestamps go backwards (or repeat)."""
+    steps = np.diff(np.asarray(timestamps, dtype=np.float64))
+    bad = np.flatnonzero(steps <= 0 if strict else steps < 0)
+    if bad.size:
+        i = int(bad[0])
+        raise RecordingError(
+            f"{what}: timestamps must increase; {bad.size} step(s) do not, first at index {i + 1} "
+            f"({timestamps[i]:.6f} -> {timestamps[i + 1]:.6f})"
+        )
+
+
+# --------------------------------------------------------------------------------------------- audio
+
+
+class AudioStream(ABC):
+    """Multichannel audio with one shared sample clock, read lazily by sample range."""
+
+    sample_rate: float
+    t0: float  #: time of sample 0 (s)
+    mic_positions: np.ndarray  #: channels x 3 (m), in the rig frame
+    num_samples: int
+    #: on-disk sample format the values lie on exactly ('S16LE', 'F32LE', ...), if known
+    sample_format: str | None = None
+
+    @property
+    def num_channels(self) -> int:
+        return int(self.mic_positions.shape[0])
+
+    @property
+    def duration(self) -> float:
+        return self.num_samples / self.sample_rate
+
+    @property
+    def t_end(self) -> float:
+        """Time just after the last sample."""
+        return self.t0 + self.duration
+
+    @abstractmethod
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Samples ``start:stop`` as float32 (channels x (stop - start)); the range must be inside."""
+
+    def sample_index(self, t: float) -> int:
+        """Index of the sample at (or just before) time ``t``."""
+        return int(np.floor((t - self.t0) * self.sample_rate + 1e-9))
+
+    def window(self, t_end: float, seconds: float) -> np.ndarray:
+        """The ``seconds`` of audio ending at ``t_end`` (causal), channels x round(seconds * fs)."""
+        n = int(round(seconds * self.sample_rate))
+        stop = self.sample_index(t_end)
+        start = stop - n
+        if start < 0 or stop > self.num_samples:
+            raise RecordingError(
+                f"audio window [{t_end - seconds:.3f}, {t_end:.3f}] s lies outside the audio "
+                f"[{self.t0:.3f}, {self.t_end:.3f}] s"
+            )
+        return self.read(start, stop)
+
+    def _check_range(self, start: int, stop: int) -> None:
+        if not 0 <= start <= stop <= self.num_samples:
+            raise RecordingError(f"audio samples {start}:{stop} outside 0:{self.num_samples}")
+
+
+class ArrayAudio(AudioStream):
+    """Audio held in an array (in memory or memory-mapped)."""
+
+    def __init__(
+        self,
+        samples: np.ndarray,
+        sample_rate: float,
+        t0: float,
+        mic_positions: np.ndarray,
+        sample_format: str | None = None,
+    ):
+        samples = np.asarray(samples)
+        mic_positions = np.asarray(mic_positions, dtype=np.float64)
+        if samples.ndim != 2 or mic_positions.shape != (samples.shape[0], 3):
+            raise RecordingError(
+                f"audio must be channels x samples with one mic position per channel; got samples "
+                f"{samples.shape} and mic positions {mic_positions.shape}"
+            )
+        if samples.dtype != np.float32:
+            samples = samples.astype(np.float32)
+        self.samples = samples
+        self.sample_rate = float(sample_rate)
+        self.t0 = float(t0)
+        self.mic_positions = mic_positions
+        self.num_samples = int(samples.shape[1])
+        self.sample_format = sample_format
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        self._check_range(start, stop)
+        return np.array(self.samples[:, start:stop], dtype=np.float32)
+
+
+# ------------------------------------------------------------------------------------------- frames
+
+
+@dataclass
+class PointCloud:
+    """One LiDAR scan: points (N x 3, float32, sensor/rig frame), intensity and, if known, origin."""
+
+    points: np.ndarray
+    intensity: np.ndarray | None = None
+    origin: np.ndarray | None = None  #: uint8 per point, ORIGIN_* (simulator only)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+
+class FrameStream(ABC):
+    """Timestamped frames (scans or images) read one at a time; timestamps are cheap."""
+
+    timestamps: np.ndarray  #: float64 seconds, increasing
+
+    def __len__(self) -> int:
+        return int(self.timestamps.shape[0])
+
+    @abstractmethod
+    def __getitem__(self, index: int) -> Any: ...
+
+    def __iter__(self) -> Iterator[Any]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def indices_between(self, t_start: float, t_end: float) -> np.ndarray:
+        """Indices of frames with ``t_start <= t < t_end``."""
+        lo, hi = np.searchsorted(self.timestamps, [t_start, t_end], side="left")
+        return np.arange(lo, hi)
+
+    def nearest(self, t: float) -> int:
+        """Index of the frame closest in time to ``t``."""
+        i = int(np.searchsorted(self.timestamps, t))
+        if i == 0:
+            return 0
+        if i >= len(self):
+            return len(self) - 1
+        return i if self.timestamps[i] - t < t - self.timestamps[i - 1] else i - 1
+
+
+class PointCloudStream(FrameStream):
+    """A LiDAR sensor's scans."""
+
+    @abstractmethod
+    def __getitem__(self, index: int) -> PointCloud: ...
+
+
+class ArrayPointClouds(PointCloudStream):
+    """Scans held in memory."""
+
+    def __init__(self, timestamps: Sequence[float] | np.ndarray, clouds: Sequence[PointCloud]):
+        self.timestamps = np.asarray(timestamps, dtype=np.float64)
+        self.clouds = list(clouds)
+        if len(self.clouds) != len(self.timestamps):
+            raise RecordingError(f"{len(self.timestamps)} scan timestamps but {len(self.clouds)} scans")
+
+    def __getitem__(self, index: int) -> PointCloud:
+        return self.clouds[index]
+
+
+@dataclass
+class EncodedImage:
+    """A compressed camera frame as the camera driver produced it (``format`` is 'png' or 'jpeg')."""
+
+    data: bytes
+    format: str
+
+    def decode(self) -> np.ndarray:
+        """The image as H x W x 3 uint8 RGB."""
+        from PIL import Image
+
+        with Image.open(io.BytesIO(self.data)) as image:
+            return np.asarray(image.convert("RGB"))
+
+
+class ImageStream(FrameStream):
+    """A camera's frames, kept encoded until asked for."""
+
+    @abstractmethod
+    def __getitem__(self, index: int) -> EncodedImage: ...
+
+    def image(self, index: int) -> np.ndarray:
+        return self[index].decode()
+
+
+class ArrayImages(ImageStream):
+    """Encoded frames held in memory."""
+
+    def __init__(self, timestamps: Sequence[float] | np.ndarray, images: Sequence[EncodedImage]):
+        self.timestamps = np.asarray(timestamps, dtype=np.float64)
+        self.images = list(images)
+        if len(self.images) != len(self.timestamps):
+            raise RecordingError(f"{len(self.timestamps)} image timestamps but {len(self.images)} images")
+
+    def __getitem__(self, index: int) -> EncodedImage:
+        return self.images[index]
+
+
+# ------------------------------------------------------------------------------------------- tracks
+
+
+@dataclass
+class Track:
+    """A timestamped 3D track (ground truth, pseudo-labels or predictions).
+
+    ``quality`` holds optional per-point arrays of the same length (e.g. supporting points,
+    distance to the nearest supporting frame); ``valid`` marks points that carry a label.
+    """
+
+    timestamps: np.ndarray
+    xyz: np.ndarray
+    valid: np.ndarray | None = None
+    quality: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.timestamps = np.asarray(self.timestamps, dtype=np.float64)
+        self.xyz = np.asarray(self.xyz, dtype=np.float64).reshape(-1, 3)
+        if self.xyz.shape[0] != self.timestamps.shape[0]:
+            raise RecordingError(f"track has {self.timestamps.shape[0]} timestamps but {self.xyz.shape[0]} points")
+        self.valid = (
+            np.ones(len(self.timestamps), dtype=bool) if self.valid is None else np.asarray(self.valid, dtype=bool)
+        )
+        for name, values in self.quality.items():
+            if len(values) != len(self.timestamps):
+                raise RecordingError(f"track quality '{name}' has {len(values)} values for {len(self)} points")
+
+    def __len__(self) -> int:
+        return int(self.timestamps.shape[0])
+
+    def interpolate(self, t: np.ndarray) -> np.ndarray:
+        """Linear interpolation of xyz at times ``t`` (valid points only; clamped at the ends)."""
+        keep = self.valid
+        return np.stack([np.interp(t, self.timestamps[keep], self.xyz[keep, k]) for k in range(3)], axis=1)
+
+
+# -------------------------------------------------------------------------------------- recording
+
+
+@dataclass
+class Recording:
+    """One flight of one drone as seen by the rig."""
+
+    sequence_id: str
+    drone: str | None
+    audio: AudioStream | None = None
+    lidar: dict[str, PointCloudStream] = field(default_factory=dict)
+    frames: ImageStream | None = None
+    ground_truth: Track | None = None
+    pseudo_labels: Track | None = None
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.drone is not None and self.drone not in DRONE_TYPES:
+            raise RecordingError(f"unknown drone type {self.drone!r}; expected one of {DRONE_TYPES}")
+        unknown = set(self.lidar) - set(LIDAR_SENSORS)
+        if unknown:
+            raise RecordingError(f"unknown LiDAR sensor(s) {sorted(unknown)}; expected {LIDAR_SENSORS}")
+
+    def time_span(self) -> tuple[float, float]:
+        """Earliest and latest time covered by any stream."""
+        starts, ends = [], []
+        if self.audio is not None:
+            starts.append(self.audio.t0)
+            ends.append(self.audio.t_end)
+        streams: list[Any] = [*self.lidar.values(), self.frames, self.ground_truth, self.pseudo_labels]
+        for stream in streams:
+            if stream is not None and len(stream):
+                starts.append(float(stream.timestamps[0]))
+                ends.append(float(stream.timestamps[-1]))
+        if not starts:
+            raise RecordingError(f"recording {self.sequence_id!r} holds no data")
+        return min(starts), max(ends)

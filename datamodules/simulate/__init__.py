@@ -1,0 +1,1 @@
+"""A physically grounded simulator of MMAUD-like multi-sensor recordings."""

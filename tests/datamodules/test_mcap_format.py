@@ -1,0 +1,200 @@
+"""The canonical MCAP recording format: round trip, lazy window reads, bad input."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+from mcap.writer import Writer as RawWriter
+from PIL import Image
+
+from datamodules.formats import open_recording
+from datamodules.formats.mcap_file import McapIndex, write_mcap
+from datamodules.recording import (
+    ArrayAudio,
+    ArrayImages,
+    ArrayPointClouds,
+    EncodedImage,
+    PointCloud,
+    Recording,
+    RecordingError,
+    Track,
+)
+
+T0 = 1692845357.123456
+
+
+def _png(rng: np.random.Generator) -> EncodedImage:
+    buffer = io.BytesIO()
+    Image.fromarray(rng.integers(0, 255, (36, 64, 3), dtype=np.uint8)).save(buffer, "PNG")
+    return EncodedImage(buffer.getvalue(), "png")
+
+
+def make_recording(seconds: float = 3.0, seed: int = 0, sample_format: str = "S16LE") -> Recording:
+    rng = np.random.default_rng(seed)
+    fs = 48000
+    samples = rng.normal(0, 0.02, (4, int(seconds * fs)))
+    if sample_format == "S16LE":
+        samples = np.rint(samples * 32768) / 32768
+    audio = ArrayAudio(samples.astype(np.float32), fs, T0, rng.uniform(-2, 2, (4, 3)), sample_format)
+    times = T0 + 0.05 + np.arange(int(seconds * 10)) * 0.1
+    clouds = [PointCloud(rng.normal(0, 5, (n, 3)).astype(np.float32), rng.uniform(0, 255, n).astype(np.float32),
+                         rng.integers(0, 3, n).astype(np.uint8)) for n in rng.integers(0, 500, times.size)]
+    valid = rng.random(times.size) > 0.3
+    return Recording(
+        sequence_id="test-seq",
+        drone="phantom4",
+        audio=audio,
+        lidar={"mid360": ArrayPointClouds(times, clouds), "avia": ArrayPointClouds(times + 0.014, clouds[::-1])},
+        frames=ArrayImages(times + 0.03, [_png(rng) for _ in times]),
+        ground_truth=Track(times, rng.normal(0, 5, (times.size, 3))),
+        pseudo_labels=Track(times, rng.normal(0, 5, (times.size, 3)), valid=valid,
+                            quality={"support": rng.integers(0, 99, times.size).astype(float)}),
+        meta={"scene": "rooftop", "nested": {"a": [1, 2, 3]}},
+    )
+
+
+def assert_same_recording(a: Recording, b: Recording) -> None:
+    assert (a.sequence_id, a.drone, a.meta) == (b.sequence_id, b.drone, b.meta)
+    assert a.audio.sample_rate == b.audio.sample_rate and a.audio.t0 == b.audio.t0
+    assert np.array_equal(a.audio.mic_positions, b.audio.mic_positions)
+    assert np.array_equal(a.audio.read(0, a.audio.num_samples), b.audio.read(0, b.audio.num_samples))
+    assert set(a.lidar) == set(b.lidar)
+    for sensor in a.lidar:
+        assert np.array_equal(a.lidar[sensor].timestamps, b.lidar[sensor].timestamps)
+        for i in range(len(a.lidar[sensor])):
+            ca, cb = a.lidar[sensor][i], b.lidar[sensor][i]
+            assert np.array_equal(ca.points, cb.points) and np.array_equal(ca.intensity, cb.intensity)
+            assert np.array_equal(ca.origin, cb.origin)
+    assert np.array_equal(a.frames.timestamps, b.frames.timestamps)
+    assert all(a.frames[i] == b.frames[i] for i in range(len(a.frames)))
+    for ta, tb in ((a.ground_truth, b.ground_truth), (a.pseudo_labels, b.pseudo_labels)):
+        assert np.array_equal(ta.timestamps, tb.timestamps) and np.array_equal(ta.valid, tb.valid)
+        assert np.array_equal(ta.xyz[ta.valid], tb.xyz[tb.valid])
+        assert ta.quality.keys() == tb.quality.keys()
+        assert all(np.array_equal(ta.quality[k], tb.quality[k]) for k in ta.quality)
+
+
+@pytest.mark.parametrize("sample_format", ["S16LE", "F32LE"])
+def test_round_trip_is_identical(tmp_path, sample_format):
+    recording = make_recording(sample_format=sample_format)
+    path = write_mcap(recording, tmp_path / "rec.mcap")
+    assert_same_recording(recording, open_recording(path))
+    # written again from what was read: the same bytes
+    again = write_mcap(open_recording(path), tmp_path / "again.mcap")
+    assert again.read_bytes() == path.read_bytes()
+
+
+def test_window_read_touches_only_its_chunks(tmp_path, monkeypatch):
+    recording = make_recording(seconds=60.0)
+    path = write_mcap(recording, tmp_path / "long.mcap", chunk_size=256 * 1024)
+    read = open_recording(path)
+    index: McapIndex = read.audio._index
+    assert len(index.summary.chunk_indexes) > 30
+    opened = []
+    original = McapIndex._chunk_messages
+
+    def counting(self, chunk_id):
+        opened.append(chunk_id)
+        return original(self, chunk_id)
+
+    monkeypatch.setattr(McapIndex, "_chunk_messages", counting)
+    t_end = T0 + 31.0
+    window = read.audio.window(t_end, 2.0)
+    assert np.array_equal(window, recording.audio.window(t_end, 2.0))
+    assert len(set(opened)) <= 4
+
+
+def test_refuses_to_overwrite_and_a_failed_write_keeps_the_old_file(tmp_path):
+    path = write_mcap(make_recording(), tmp_path / "rec.mcap")
+    before = path.read_bytes()
+    with pytest.raises(FileExistsError, match="already exists"):
+        write_mcap(make_recording(seed=1), path)
+
+    class Broken(ArrayPointClouds):
+        def __getitem__(self, index):
+            if index == 5:
+                raise OSError("sensor stream broke")
+            return super().__getitem__(index)
+
+    broken = make_recording(seed=2)
+    broken.lidar["mid360"] = Broken(broken.lidar["mid360"].timestamps, broken.lidar["mid360"].clouds)
+    with pytest.raises(OSError, match="sensor stream broke"):
+        write_mcap(broken, path, overwrite=True)
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["rec.mcap"]
+
+
+def test_bad_files_raise_errors_naming_them(tmp_path):
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"this is not an mcap file at all" * 10)
+    with pytest.raises(RecordingError, match="junk.mcap: not an MCAP file"):
+        open_recording(junk)
+
+    good = write_mcap(make_recording(), tmp_path / "good.mcap")
+    truncated = tmp_path / "truncated.mcap"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(RecordingError, match="truncated.mcap"):
+        open_recording(truncated)
+
+    foreign = tmp_path / "foreign.mcap"
+    with open(foreign, "wb") as stream:
+        writer = RawWriter(stream)
+        writer.start()
+        writer.finish()
+    with pytest.raises(RecordingError, match="metadata 'mmaud' missing"):
+        open_recording(foreign)
+
+    with pytest.raises(RecordingError, match="no such file"):
+        open_recording(tmp_path / "missing.mcap")
+    with pytest.raises(RecordingError, match="not a known recording layout"):
+        open_recording(tmp_path)
+
+
+def _copy_with_metadata(src, dst, edit) -> None:
+    """Copy an MCAP file record by record, editing its metadata on the way."""
+    from mcap.reader import make_reader
+
+    with open(src, "rb") as source, open(dst, "wb") as target:
+        reader = make_reader(source)
+        writer = RawWriter(target)
+        writer.start(profile="ros2")
+        summary = reader.get_summary()
+        for schema in summary.schemas.values():
+            writer.register_schema(schema.name, schema.encoding, schema.data)
+        for channel in summary.channels.values():
+            writer.register_channel(channel.topic, channel.message_encoding, channel.schema_id)
+        for meta in reader.iter_metadata():
+            writer.add_metadata(meta.name, edit(meta.name, dict(meta.metadata)))
+        for _, channel, message in reader.iter_messages():
+            writer.add_message(channel.id, message.log_time, message.data, message.publish_time)
+        writer.finish()
+
+
+def test_inconsistent_audio_description_is_rejected(tmp_path):
+    recording = make_recording()
+    good = write_mcap(recording, tmp_path / "good.mcap")
+
+    def two_channels(name, meta):
+        if name == "audio":
+            meta["channels"] = "2"
+            meta["mic_positions_json"] = "[[0, 0, 0], [1, 0, 0]]"
+        return meta
+
+    _copy_with_metadata(good, tmp_path / "bad.mcap", two_channels)
+    with pytest.raises(RecordingError, match="bad.mcap: /audio/info says 4 ch"):
+        open_recording(tmp_path / "bad.mcap")
+
+    recording.audio.mic_positions = recording.audio.mic_positions[:2]  # 4 channels, 2 positions
+    with pytest.raises(RecordingError, match="4 channels but 2 mic positions"):
+        write_mcap(recording, tmp_path / "never.mcap")
+    assert not (tmp_path / "never.mcap").exists()
+
+
+def test_duplicate_timestamps_are_refused_on_write(tmp_path):
+    recording = make_recording()
+    recording.ground_truth.timestamps[3] = recording.ground_truth.timestamps[2]
+    with pytest.raises(RecordingError, match="/ground_truth: timestamps must increase"):
+        write_mcap(recording, tmp_path / "dup.mcap")
+    assert not any(tmp_path.iterdir())

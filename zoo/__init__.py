@@ -1,0 +1,1 @@
+"""The model zoo: networks, the Lightning task, smoothing, weights and the ``aaute`` command."""
