@@ -19,11 +19,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import ShortTimeFFT, butter, sosfilt
-from scipy.signal.windows import hann
+from scipy.signal import butter, istft, sosfilt, stft
 
 from datamodules.simulate.ambient import AmbientConfig, AmbientRealisation, render_ambient
-from datamodules.simulate.drone_sound import DroneSource, SourceConfig, directivity_gain
+from datamodules.simulate.drone_sound import DroneSource, SourceConfig, directivity_gain, lerp, uniform_lookup
 from datamodules.simulate.drones import DroneSpec
 from datamodules.simulate.microphones import mic_geometry
 from datamodules.simulate.propagation import GROUNDS, absorption_db_per_m, level_to_pressure, speed_of_sound
@@ -133,8 +132,8 @@ def render_audio(
             mic_paths.append(_solve_path(trajectory, mics[m], true_times, c, image=True))
         paths.append(mic_paths)
 
-    stft = ShortTimeFFT(hann(1024, sym=False), hop=256, fs=fs)
-    freqs = stft.f
+    frame, overlap = 1024, 768  # 21 ms Hann frames, 75 % overlap (perfect reconstruction)
+    freqs = np.fft.rfftfreq(frame, 1.0 / fs)
     alpha = absorption_db_per_m(freqs, config.temperature_c, config.humidity_pct, config.pressure_kpa)
     block = int(config.block_seconds * fs)
     margin = 2048
@@ -143,18 +142,20 @@ def render_audio(
         stop = min(start + block, num_samples)
         lo, hi = start - margin, stop + margin
         t_rx = np.arange(lo, hi) / fs
-        frame_times = t_rx[0] + stft.t(hi - lo)
+        index, weight = uniform_lookup(t_rx, grid[0], config.control_rate, grid.size)
         for m in range(channels):
             total = np.zeros(hi - lo)
             for path in paths[m]:
-                emission = np.interp(t_rx, grid, path.emission_time)
-                signal = np.interp(t_rx, grid, path.gain) * source.emitted(emission)
+                emission = lerp(path.emission_time, index, weight)
+                signal = lerp(path.gain, index, weight) * source.emitted(emission)
+                _, frame_offsets, spectra = stft(signal, fs, "hann", frame, overlap, boundary="even")
+                frame_times = t_rx[0] + frame_offsets
                 r = np.interp(frame_times, grid, path.distance)
                 response = 10.0 ** (-alpha[:, None] * r[None, :] / 20.0)
                 if path.incidence_cos is not None:
                     cos = np.interp(frame_times, grid, path.incidence_cos)
                     response = response * ground.reflection_coefficient(freqs[:, None], cos[None, :])
-                total += stft.istft(stft.stft(signal) * response, k1=hi - lo)
+                total += istft(spectra * response, fs, "hann", frame, overlap)[1][: hi - lo]
             drone[m, start:stop] = total[margin:margin + stop - start]
 
     snr = _band_snr_db(drone, noise, fs, config.snr_band_hz)

@@ -84,6 +84,18 @@ def directivity_gain(elevation_rad: np.ndarray) -> np.ndarray:
 _DIRECTIVITY_POWER = _directivity_mean_power()
 
 
+def uniform_lookup(t: np.ndarray, t0: float, rate: float, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Left index and weight of times ``t`` on the uniform grid t0 + k / rate (clamped to it)."""
+    pos = np.clip((np.asarray(t, dtype=np.float64) - t0) * rate, 0.0, size - 1.000001)
+    index = pos.astype(np.int64)
+    return index, pos - index
+
+
+def lerp(values: np.ndarray, index: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Linear interpolation of ``values`` (... x grid) at a :func:`uniform_lookup` result."""
+    return values[..., index] * (1.0 - weight) + values[..., index + 1] * weight
+
+
 class DroneSource:
     """Emitted pressure at 1 m (Pa, free field, unit directivity) of one drone along one flight.
 
@@ -206,18 +218,19 @@ class DroneSource:
     def emitted(self, t: np.ndarray) -> np.ndarray:
         """Emitted pressure at 1 m (Pa) at emission times ``t`` (s, trajectory clock)."""
         t = np.asarray(t, dtype=np.float64)
+        index, weight = uniform_lookup(t, self.control_times[0], self.config.control_rate, self.control_times.size)
+        phase = lerp(self.shaft_phase, index, weight)  # rotors x N
+        gain = lerp(self.rotor_gain, index, weight)
         size = self.config.wavetable_size
-        out = np.zeros(t.shape)
-        for rotor in range(self.spec.rotors):
-            phase = np.interp(t, self.control_times, self.shaft_phase[rotor])
-            pos = np.mod(phase, 2.0 * np.pi) * (size / (2.0 * np.pi))
-            i0 = pos.astype(np.int64) % size
-            frac = pos - np.floor(pos)
-            table = self.wavetables[rotor]
-            wave = table[i0] * (1.0 - frac) + table[(i0 + 1) % size] * frac
-            out += np.interp(t, self.control_times, self.rotor_gain[rotor]) * wave
-        mean_gain = np.interp(t, self.control_times, self.rotor_gain.mean(axis=0))
-        out += self.broadband_scale * mean_gain * self._read_noise(t)
+        pos = np.mod(phase, 2.0 * np.pi) * (size / (2.0 * np.pi))
+        i0 = pos.astype(np.int64)
+        frac = pos - i0
+        i0 %= size
+        rows = (np.arange(self.spec.rotors) * size)[:, None]
+        table = self.wavetables.ravel()
+        wave = table[rows + i0] * (1.0 - frac) + table[rows + (i0 + 1) % size] * frac
+        out = np.einsum("rn,rn->n", gain, wave)
+        out += self.broadband_scale * gain.mean(axis=0) * self._read_noise(t)
         return self.scale * out
 
     def _read_noise(self, t: np.ndarray) -> np.ndarray:
