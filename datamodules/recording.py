@@ -13,6 +13,7 @@ float32 in digital full-scale units, channels x samples.
 from __future__ import annotations
 
 import io
+import json
 from abc import ABC, abstractmethod
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -48,6 +49,24 @@ def ns_to_seconds(ns: np.ndarray | int) -> np.ndarray:
     ns = np.asarray(ns, dtype=np.int64)
     whole, frac = np.divmod(ns, 1_000_000_000)
     return whole.astype(np.float64) + frac.astype(np.float64) / 1e9
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot store {type(value).__name__} in recording metadata")
+
+
+def to_json(meta: dict[str, Any]) -> str:
+    """Recording metadata as JSON (numpy values become plain numbers and lists)."""
+    return json.dumps(meta, sort_keys=True, default=_json_default)
+
+
+def json_safe(meta: dict[str, Any]) -> dict[str, Any]:
+    """Metadata exactly as it reads back from disk (tuples become lists, numpy becomes Python)."""
+    return json.loads(to_json(meta))
 
 
 def check_monotonic(timestamps: np.ndarray, what: str, strict: bool = True) -> None:

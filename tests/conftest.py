@@ -22,3 +22,14 @@ def shared_data() -> Path:
     if not path.is_dir():
         pytest.skip(f"real MMAUD samples not found at {path} (set AAUTE_SHARED_DATA)")
     return path
+
+
+@pytest.fixture(scope="session")
+def simulated_dir(tmp_path_factory) -> Path:
+    """Two short simulated recordings (a Mavic 2 and an M300, 4 s each) in one folder."""
+    from datamodules.simulate.simulator import SimulationConfig, simulate_dataset
+
+    out = tmp_path_factory.mktemp("simulated")
+    config = SimulationConfig(duration=4.0)
+    simulate_dataset(out, 2, config, seed=11, progress=False)
+    return out

@@ -61,6 +61,7 @@ from datamodules.recording import (
     check_monotonic,
     ns_to_seconds,
     seconds_to_ns,
+    to_json,
 )
 
 FORMAT_VERSION = "1"
@@ -156,7 +157,7 @@ def _write_metadata(writer: Writer, recording: Recording, audio_format: str | No
         "format_version": FORMAT_VERSION,
         "sequence_id": recording.sequence_id,
         "drone": recording.drone or "",
-        "meta_json": json.dumps(recording.meta, sort_keys=True, default=_json_default),
+        "meta_json": to_json(recording.meta),
     })
     audio = recording.audio
     if audio is not None:
@@ -168,14 +169,6 @@ def _write_metadata(writer: Writer, recording: Recording, audio_format: str | No
             "sample_format": _audio_format(audio, audio_format),
             "mic_positions_json": json.dumps(np.asarray(audio.mic_positions).tolist()),
         })
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot store {type(value).__name__} in recording metadata")
 
 
 def _write_track(writer: Writer, schemas: dict, topic: str, track: Track) -> None:
@@ -227,7 +220,11 @@ def _write_clouds(writer: Writer, schemas: dict, topic: str, clouds: PointCloudS
         fields = {"x": cloud.points[:, 0].astype(np.float32), "y": cloud.points[:, 1].astype(np.float32),
                   "z": cloud.points[:, 2].astype(np.float32)}
         if cloud.intensity is not None:
-            fields["intensity"] = np.asarray(cloud.intensity, dtype=np.float32)
+            intensity = np.asarray(cloud.intensity, dtype=np.float32)
+            # Livox reflectivity is an integer 0-255: store it in one byte when that is exact
+            as_byte = intensity.astype(np.uint8)
+            exact = np.array_equal(as_byte, intensity)
+            fields["intensity"] = as_byte if exact else intensity
         if cloud.origin is not None:
             fields["origin"] = np.asarray(cloud.origin, dtype=np.uint8)
         descriptors, step, data = pointcloud_fields(fields)

@@ -21,6 +21,7 @@ from datamodules.recording import (
     RecordingError,
     Track,
 )
+from tests.recording_checks import assert_same_recording
 
 T0 = 1692845357.123456
 
@@ -53,27 +54,6 @@ def make_recording(seconds: float = 3.0, seed: int = 0, sample_format: str = "S1
                             quality={"support": rng.integers(0, 99, times.size).astype(float)}),
         meta={"scene": "rooftop", "nested": {"a": [1, 2, 3]}},
     )
-
-
-def assert_same_recording(a: Recording, b: Recording) -> None:
-    assert (a.sequence_id, a.drone, a.meta) == (b.sequence_id, b.drone, b.meta)
-    assert a.audio.sample_rate == b.audio.sample_rate and a.audio.t0 == b.audio.t0
-    assert np.array_equal(a.audio.mic_positions, b.audio.mic_positions)
-    assert np.array_equal(a.audio.read(0, a.audio.num_samples), b.audio.read(0, b.audio.num_samples))
-    assert set(a.lidar) == set(b.lidar)
-    for sensor in a.lidar:
-        assert np.array_equal(a.lidar[sensor].timestamps, b.lidar[sensor].timestamps)
-        for i in range(len(a.lidar[sensor])):
-            ca, cb = a.lidar[sensor][i], b.lidar[sensor][i]
-            assert np.array_equal(ca.points, cb.points) and np.array_equal(ca.intensity, cb.intensity)
-            assert np.array_equal(ca.origin, cb.origin)
-    assert np.array_equal(a.frames.timestamps, b.frames.timestamps)
-    assert all(a.frames[i] == b.frames[i] for i in range(len(a.frames)))
-    for ta, tb in ((a.ground_truth, b.ground_truth), (a.pseudo_labels, b.pseudo_labels)):
-        assert np.array_equal(ta.timestamps, tb.timestamps) and np.array_equal(ta.valid, tb.valid)
-        assert np.array_equal(ta.xyz[ta.valid], tb.xyz[tb.valid])
-        assert ta.quality.keys() == tb.quality.keys()
-        assert all(np.array_equal(ta.quality[k], tb.quality[k]) for k in ta.quality)
 
 
 @pytest.mark.parametrize("sample_format", ["S16LE", "F32LE"])
