@@ -24,6 +24,7 @@ of that topic and time (found through MCAP's chunk and message indexes, never by
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from collections import OrderedDict
@@ -37,6 +38,7 @@ from mcap.exceptions import McapError
 from mcap.reader import SeekingReader, make_reader
 from mcap.records import Chunk, Message, MessageIndex
 from mcap.stream_reader import breakup_chunk
+from mcap.writer import Writer as RawWriter
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer
 
@@ -241,6 +243,59 @@ def _write_images(writer: Writer, schemas: dict, frames: ImageStream) -> None:
         image = frames[i]
         writer.write_message(TOPIC_IMAGE, schema, {"header": header(int(ns), "camera"), "format": image.format,
                                                     "data": image.data}, int(ns), int(ns), i)
+
+
+def replace_track(path: str | Path, topic: str, track: Track | None) -> Path:
+    """Rewrite an MCAP recording with ``topic`` (and its quality topic) replaced by ``track``.
+
+    Used to store pseudo-labels beside the sensor data. The new track goes first (small topics
+    first, as :func:`write_mcap` does); every other message is copied byte for byte. The new file
+    replaces the old one only once it is complete, so an interrupted run leaves the original
+    intact. ``track=None`` removes the topic.
+    """
+    path = Path(path)
+    drop = {topic, topic + QUALITY_SUFFIX}
+    index = McapIndex(path)  # validates the file and names it in errors
+    encoded = io.BytesIO()
+    if track is not None:
+        track_writer = Writer(encoded)
+        schemas = {name: track_writer.register_msgdef(name, text) for name, text in MSGDEFS.items()}
+        _write_track(track_writer, schemas, topic, track)
+        track_writer.finish()
+        encoded.seek(0)
+    tmp = atomic_target(path, overwrite=True)
+    try:
+        with open(path, "rb") as source, open(tmp, "wb") as target:
+            writer = RawWriter(target)
+            writer.start(profile="ros2", library="aaute")
+            for name, meta in index.metadata.items():
+                writer.add_metadata(name, meta)
+            if track is not None:
+                _copy_messages(make_reader(encoded), writer, set())
+            _copy_messages(make_reader(source), writer, drop)
+            writer.finish()
+            target.flush()
+            os.fsync(target.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def _copy_messages(reader: SeekingReader, writer: RawWriter, drop: set[str]) -> None:
+    """Copy every message (except ``drop`` topics) with its schema and channel, undecoded."""
+    summary = reader.get_summary()
+    schema_ids = {sid: writer.register_schema(s.name, s.encoding, s.data) for sid, s in summary.schemas.items()}
+    channel_ids = {
+        cid: writer.register_channel(c.topic, c.message_encoding, schema_ids.get(c.schema_id, 0), c.metadata)
+        for cid, c in summary.channels.items()
+        if c.topic not in drop
+    }
+    for _, channel, message in reader.iter_messages(log_time_order=False):
+        if channel.id in channel_ids:
+            writer.add_message(channel_ids[channel.id], message.log_time, message.data, message.publish_time,
+                               message.sequence)
 
 
 # ============================================================================================ reading

@@ -178,3 +178,20 @@ def test_duplicate_timestamps_are_refused_on_write(tmp_path):
     with pytest.raises(RecordingError, match="/ground_truth: timestamps must increase"):
         write_mcap(recording, tmp_path / "dup.mcap")
     assert not any(tmp_path.iterdir())
+
+
+def test_replace_track_adds_pseudo_labels_and_keeps_the_rest(tmp_path):
+    from datamodules.formats.mcap_file import replace_track
+
+    recording = make_recording()
+    recording.pseudo_labels = None
+    path = write_mcap(recording, tmp_path / "rec.mcap")
+    labels = Track(recording.ground_truth.timestamps, recording.ground_truth.xyz + 0.5,
+                   valid=np.arange(len(recording.ground_truth)) % 4 != 0,
+                   quality={"support": np.arange(len(recording.ground_truth), dtype=float)})
+    replace_track(path, "/pseudo_label", labels)
+    recording.pseudo_labels = labels
+    assert_same_recording(recording, open_recording(path))
+    replace_track(path, "/pseudo_label", None)
+    again = open_recording(path)
+    assert again.pseudo_labels is None and len(again.lidar["mid360"]) == len(recording.lidar["mid360"])
