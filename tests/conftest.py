@@ -26,10 +26,10 @@ def shared_data() -> Path:
 
 @pytest.fixture(scope="session")
 def simulated_dir(tmp_path_factory) -> Path:
-    """Two short simulated recordings (a Mavic 2 and an M300, 4 s each) in one folder."""
+    """Three short simulated recordings (an Avata, an M300 and a Mavic 2, 4 s each) in one folder."""
     from datamodules.simulate.simulator import SimulationConfig, simulate_dataset
 
     out = tmp_path_factory.mktemp("simulated")
     config = SimulationConfig(duration=4.0)
-    simulate_dataset(out, 2, config, seed=11, progress=False)
+    simulate_dataset(out, 3, config, seed=11, progress=False)
     return out

@@ -649,3 +649,27 @@ def simulate_camera(
     options = {"ratio": ratio, "shot_noise": shot_noise, "sky": sky, "leds": leds}
     frames = render_frames(model, drone, trajectory, frame_times, light, rng, **options)
     return [encode_image(model, frame) for frame in frames]
+
+
+def darken_image(
+    image: np.ndarray,
+    rng: np.random.Generator,
+    ratio: float = DARK_RATIO,
+    model: CameraModel | None = None,
+    shot_noise: float | None = None,
+) -> np.ndarray:
+    """Turn a daylight frame (H x W x 3 uint8 sRGB) into the same view in low light.
+
+    The physical pipeline of :func:`render_frames` applied to an existing image: unprocess to
+    linear raw with sampled white-balance gains, scale by 1 / ``ratio``, add Brooks shot and read
+    noise, quantise with the ADC, then auto-exposure gain (capped at ``model.max_gain``) and the
+    ISP. Unlike a recording simulated with ``light='dark'``, emissive LEDs dim with the rest here.
+    """
+    model = model or CameraModel()
+    sensor = _Sensor.sample(model, "dark", ratio, shot_noise, rng)
+    linear = srgb_to_linear(np.asarray(image, dtype=np.float32) / 255.0)
+    raw = linear / (sensor.wb * sensor.ratio).astype(np.float32)
+    raw = np.minimum(raw, 1.0)
+    noisy = raw + np.sqrt(raw * sensor.shot + sensor.read) * rng.standard_normal(raw.shape).astype(np.float32)
+    dn = np.clip(np.rint(noisy * sensor.white), 0, sensor.white) / sensor.white
+    return np.rint(255.0 * linear_to_srgb(dn * sensor.gain * sensor.wb)).astype(np.uint8)

@@ -1,0 +1,440 @@
+"""The shared MMAUD DataModule: the same windows, splits and targets for every model of the zoo.
+
+A sample is a window of sensor data ending at a label time (causal), with every target the loss
+or the evaluation may need: ground-truth xyz, pseudo-label xyz, a validity flag for each (a window
+inside a teacher gap has no pseudo-label), drone class, visibility in the camera, time and
+sequence. Models differ only in which inputs they consume and with which recipe
+(:mod:`datamodules.features`); the inputs are computed once into a memory-mapped cache.
+
+Splits are by sequence, never by window: explicit lists of sequence ids, or a seeded split
+stratified by drone type. Validation and test run under each light condition in
+``test_lights`` (loader index k is condition ``test_lights[k]``), so one ``test`` reports both the
+ideal-light and the darkness numbers.
+"""
+
+from __future__ import annotations
+
+import logging
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch.utils.data import DataLoader, Dataset
+
+from datamodules.cache import FeatureCache, array_fingerprint, path_fingerprint
+from datamodules.features import (
+    DARK_MODES,
+    audio_window,
+    image_features,
+    image_recipe,
+    mel_features,
+    mel_recipe,
+    published_dark,
+    scale_image,
+)
+from datamodules.recording import Recording, RecordingError, Track
+
+log = logging.getLogger(__name__)
+
+INPUT_KINDS = ("audio_mel", "image")
+TARGET_MODES = ("both", "ground_truth", "pseudo")
+LIGHTS = ("ideal", "dark")
+SPLITS = ("train", "val", "test")
+
+
+def discover(root: str | Path | list[str | Path]) -> list[Path]:
+    """Every recording under ``root`` (files, folders or lists of them), in a stable order."""
+    from datamodules import formats
+
+    roots = root if isinstance(root, list | tuple) else [root]
+    found: list[Path] = []
+    for entry in roots:
+        entry = Path(entry)
+        finder = getattr(formats, "discover_recordings", None)
+        if finder is not None:
+            found.extend(Path(p) for p in finder(entry))
+        elif entry.is_file():
+            found.append(entry)
+        elif entry.is_dir():
+            found.extend(sorted(entry.rglob("*.mcap")))
+        else:
+            raise RecordingError(f"{entry}: no such file or directory")
+    if not found:
+        raise RecordingError(f"no recordings found under {roots}")
+    return sorted(dict.fromkeys(found))
+
+
+def _nearest(track: Track | None, times: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Track xyz at the nearest valid point to each time, and whether one lies within ``tolerance``."""
+    xyz = np.zeros((times.size, 3))
+    valid = np.zeros(times.size, dtype=bool)
+    if track is None or not track.valid.any():
+        return xyz, valid
+    stamps, points = track.timestamps[track.valid], track.xyz[track.valid]
+    right = np.clip(np.searchsorted(stamps, times), 1, max(stamps.size - 1, 1))
+    left = right - 1
+    pick = np.where(np.abs(stamps[np.minimum(right, stamps.size - 1)] - times) < np.abs(stamps[left] - times),
+                    np.minimum(right, stamps.size - 1), left)
+    valid = np.abs(stamps[pick] - times) <= tolerance
+    xyz[valid] = points[pick[valid]]
+    return xyz, valid
+
+
+@dataclass
+class SequenceSamples:
+    """The samples of one recording (arrays of equal length) and where its features are cached."""
+
+    path: Path
+    sequence_id: str
+    drone: str | None
+    times: np.ndarray
+    gt: np.ndarray
+    gt_valid: np.ndarray
+    pseudo: np.ndarray
+    pseudo_valid: np.ndarray
+    image_index: np.ndarray  #: nearest camera frame, -1 if none
+    visible: np.ndarray
+    class_id: int
+    feature_keys: dict[str, str]
+
+    def __len__(self) -> int:
+        return int(self.times.size)
+
+
+def _visibility(recording: Recording, positions: np.ndarray, has_image: np.ndarray) -> np.ndarray:
+    """Whether the drone is in the (left-cropped) camera image at each position.
+
+    Simulated recordings carry the camera geometry, so visibility is computed by projection; for
+    other layouts it is 1 wherever a frame exists (their own detection labels are not read yet).
+    """
+    if recording.meta.get("source_format") != "simulator" or recording.frames is None:
+        return has_image.astype(np.float32)
+    from datamodules.simulate.camera import CameraModel, project
+
+    model = CameraModel()
+    u, _, inside = project(model, positions)
+    return (inside & (u < 1280) & has_image).astype(np.float32)
+
+
+class MMAUDDataModule(L.LightningDataModule):
+    """Windows of MMAUD(-like) recordings for every model of the zoo.
+
+    Args:
+        root: recordings: files or folders (any readable layout), or a list of them.
+        split: by sequence. Either explicit ``{"train": [ids], "val": [ids], "test": [ids]}`` (sequence
+            ids or file stems), or seeded ``{"seed": 0, "val": 0.2, "test": 0.2}``, stratified by drone.
+        window_seconds: audio seconds ending at the label time (causal).
+        label_rate: samples per second (labels are thinned to this rate).
+        inputs: what the model consumes: ``{"audio_mel": <mel recipe>, "image": <image recipe>}``.
+        light: condition of the validation loader ('ideal' or 'dark').
+        test_lights: conditions of the test loaders, in order.
+        dark_mode: 'published' (constant near-black image, visibility 0) or 'physical' (low-light rendering).
+        train_dark_probability: share of training images darkened (0.3 in AV-FDTI, 0.4 in AV-PedAware).
+        targets: which targets batches carry: 'both', 'ground_truth' or 'pseudo' (the other is marked
+            invalid, so a self-supervised run cannot see ground truth even by mistake).
+        faithful_window_order: reproduce the original newest-first audio chunk order.
+        batch_size, num_workers: DataLoader settings.
+        cache_dir: feature cache (default ``$AAUTE_CACHE`` or ``~/.cache/aaute/features``).
+        image_tolerance_s: the camera frame must lie this close to the label time.
+    """
+
+    def __init__(
+        self,
+        root: str | list[str],
+        split: dict[str, Any] | None = None,
+        window_seconds: float = 2.0,
+        label_rate: float = 10.0,
+        inputs: dict[str, str] | None = None,
+        light: str = "ideal",
+        test_lights: list[str] | None = None,
+        dark_mode: str = "published",
+        train_dark_probability: float = 0.3,
+        targets: str = "both",
+        faithful_window_order: bool = False,
+        batch_size: int = 32,
+        num_workers: int = 0,
+        cache_dir: str | None = None,
+        image_tolerance_s: float = 0.1,
+    ):
+        super().__init__()
+        self.save_hyperparameters()
+        self.inputs = dict(inputs or {"audio_mel": "aaute"})
+        unknown = set(self.inputs) - set(INPUT_KINDS)
+        if unknown:
+            raise ValueError(f"unknown input(s) {sorted(unknown)}; known: {INPUT_KINDS}")
+        self.audio_recipe = mel_recipe(self.inputs["audio_mel"]) if "audio_mel" in self.inputs else None
+        self.image_recipe = image_recipe(self.inputs["image"]) if "image" in self.inputs else None
+        self.test_lights = list(test_lights or ["ideal", "dark"])
+        for value in (light, *self.test_lights):
+            if value not in LIGHTS:
+                raise ValueError(f"light must be one of {LIGHTS}, not {value!r}")
+        if dark_mode not in DARK_MODES:
+            raise ValueError(f"dark_mode must be one of {DARK_MODES}, not {dark_mode!r}")
+        if targets not in TARGET_MODES:
+            raise ValueError(f"targets must be one of {TARGET_MODES}, not {targets!r}")
+        self.cache = FeatureCache(cache_dir)
+        self.sequences: dict[str, list[SequenceSamples]] = {}
+        self.skipped: dict[str, int] = {}
+
+    # ------------------------------------------------------------------------------ preparation
+
+    def prepare_data(self) -> None:
+        """Index every recording and build the feature caches (rank 0 of each node)."""
+        self._index()
+
+    def setup(self, stage: str | None = None) -> None:
+        if not self.sequences:
+            self._index()  # other ranks: the caches exist by now, only the index is rebuilt
+
+    @property
+    def sequence_ids(self) -> list[str]:
+        """All sequence ids in a fixed order; batches carry an index into this list."""
+        return [s.sequence_id for name in SPLITS for s in self.sequences.get(name, [])]
+
+    def _index(self) -> None:
+        from datamodules.formats import open_recording
+
+        paths = discover(self.hparams.root)
+        recordings = [(path, open_recording(path)) for path in paths]
+        ids = [rec.sequence_id for _, rec in recordings]
+        if len(set(ids)) != len(ids):
+            raise RecordingError(f"sequence ids are not unique under {self.hparams.root}")
+        assignment = self._assign_splits(recordings)
+        self.sequences = {name: [] for name in SPLITS}
+        self.skipped = {}
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)  # one small window at a time: threads only contend
+        try:
+            for (path, recording), split_name in zip(recordings, assignment, strict=True):
+                if split_name is None:
+                    continue
+                samples = self._samples(path, recording)
+                if samples is not None:
+                    self.sequences[split_name].append(samples)
+        finally:
+            torch.set_num_threads(threads)
+        for reason, count in self.skipped.items():
+            log.warning("skipped %d windows: %s", count, reason)
+        sizes = {name: sum(len(s) for s in seqs) for name, seqs in self.sequences.items()}
+        log.info("samples per split: %s (sequences %s)", sizes, {n: len(s) for n, s in self.sequences.items()})
+
+    def _assign_splits(self, recordings: list[tuple[Path, Recording]]) -> list[str | None]:
+        """Split name of each recording (None: not used)."""
+        split = dict(self.hparams.split or {"seed": 0, "val": 0.2, "test": 0.2})
+        names = [(rec.sequence_id, path.stem) for path, rec in recordings]
+        if any(isinstance(split.get(key), list | tuple) for key in SPLITS):
+            lookup: dict[str, str] = {}
+            for name in SPLITS:
+                for item in split.get(name) or []:
+                    if item in lookup:
+                        raise ValueError(f"sequence {item!r} is listed in both {lookup[item]!r} and {name!r}")
+                    lookup[item] = name
+            known = {n for pair in names for n in pair}
+            missing = sorted(set(lookup) - known)
+            if missing:
+                raise RecordingError(f"split names sequences that were not found: {missing}")
+            return [lookup.get(seq, lookup.get(stem)) for seq, stem in names]
+        rng = np.random.default_rng(int(split.get("seed", 0)))
+        fractions = {"val": float(split.get("val", 0.2)), "test": float(split.get("test", 0.2))}
+        result: list[str | None] = ["train"] * len(recordings)
+        groups: dict[str, list[int]] = {}
+        for i, (_, rec) in enumerate(recordings):
+            groups.setdefault(rec.drone or "unknown", []).append(i)
+        for members in groups.values():
+            order = rng.permutation(members)
+            counts = {name: int(round(frac * len(order))) for name, frac in fractions.items()}
+            if len(order) >= 3:
+                counts = {name: max(1, c) if fractions[name] > 0 else 0 for name, c in counts.items()}
+            cursor = 0
+            for name in ("test", "val"):
+                for i in order[cursor:cursor + counts[name]]:
+                    result[int(i)] = name
+                cursor += counts[name]
+        return result
+
+    def _label_times(self, recording: Recording) -> np.ndarray:
+        reference = recording.ground_truth if recording.ground_truth is not None else recording.pseudo_labels
+        if reference is None:
+            raise RecordingError(f"recording {recording.sequence_id!r} has neither ground truth nor pseudo-labels "
+                                 f"(label it with 'aaute label')")
+        times = reference.timestamps
+        if times.size > 1:
+            step = max(1, int(round(1.0 / (self.hparams.label_rate * np.median(np.diff(times))))))
+            times = times[::step]
+        return times
+
+    def _count_skip(self, reason: str, count: int) -> None:
+        if count:
+            self.skipped[reason] = self.skipped.get(reason, 0) + int(count)
+
+    def _samples(self, path: Path, recording: Recording) -> SequenceSamples | None:
+        times = self._label_times(recording)
+        keep = np.ones(times.size, dtype=bool)
+        if self.audio_recipe is not None:
+            audio = recording.audio
+            if audio is None:
+                raise RecordingError(f"{path}: the model needs audio ('{self.audio_recipe.name}') but the "
+                                     f"recording has none")
+            span = self.hparams.window_seconds
+            if self.hparams.faithful_window_order:
+                span = self.audio_recipe.chunk_seconds * (1 - min(self.audio_recipe.chunk_offsets))
+            inside = (times - span >= audio.t0 - 1e-9) & (times <= audio.t_end + 1e-9)
+            self._count_skip("window not inside the audio", int((keep & ~inside).sum()))
+            keep &= inside
+        image_index = np.full(times.size, -1)
+        if recording.frames is not None and len(recording.frames):
+            nearest = np.array([recording.frames.nearest(t) for t in times], dtype=np.int64)
+            close = np.abs(recording.frames.timestamps[nearest] - times) <= self.hparams.image_tolerance_s
+            image_index = np.where(close, nearest, -1)
+        if self.image_recipe is not None:
+            if recording.frames is None:
+                raise RecordingError(f"{path}: the model needs images but the recording has no camera")
+            self._count_skip("no camera frame near the label time", int((keep & (image_index < 0)).sum()))
+            keep &= image_index >= 0
+        times, image_index = times[keep], image_index[keep]
+        if times.size == 0:
+            log.warning("%s: no usable windows", path)
+            return None
+
+        tolerance = 0.5 / self.hparams.label_rate
+        gt, gt_valid = _nearest(recording.ground_truth, times, tolerance)
+        pseudo, pseudo_valid = _nearest(recording.pseudo_labels, times, tolerance)
+        if self.hparams.targets == "pseudo":
+            gt_valid[:] = False
+        elif self.hparams.targets == "ground_truth":
+            pseudo_valid[:] = False
+        position = np.where(gt_valid[:, None], gt, pseudo)
+        visible = _visibility(recording, position, image_index >= 0)
+        from datamodules.simulate.drones import DRONES
+
+        class_id = DRONES[recording.drone].class_id if recording.drone in DRONES else -1
+        keys = self._build_features(path, recording, times, image_index)
+        return SequenceSamples(path, recording.sequence_id, recording.drone, times, gt, gt_valid, pseudo,
+                               pseudo_valid, image_index, visible, class_id, keys)
+
+    def _build_features(self, path: Path, recording: Recording, times: np.ndarray,
+                        image_index: np.ndarray) -> dict[str, str]:
+        """Cache the model's inputs for every sample (entries that exist are reused)."""
+        base = f"{path_fingerprint(path)}-{array_fingerprint(times)}"
+        keys: dict[str, str] = {}
+        if self.audio_recipe is not None:
+            recipe, audio = self.audio_recipe, recording.audio
+            key = f"mel-{recipe.key()}-{self.hparams.window_seconds:g}-{int(self.hparams.faithful_window_order)}-{base}"
+            keys["audio_mel"] = key
+
+            def mel(i: int) -> np.ndarray:
+                window = audio_window(audio, float(times[i]), recipe, self.hparams.window_seconds,
+                                      self.hparams.faithful_window_order)
+                return mel_features(window, audio.sample_rate, recipe).numpy()
+
+            self.cache.build(key, times.size, (audio.num_channels, *recipe.output_shape), np.float32, mel)
+        if self.image_recipe is not None:
+            recipe, frames = self.image_recipe, recording.frames
+            key = f"img-{recipe.key()}-{base}"
+            keys["image"] = key
+
+            def image(i: int) -> np.ndarray:
+                return image_features(frames.image(int(image_index[i])), recipe).numpy()
+
+            self.cache.build(key, times.size, (3, *recipe.size), np.uint8, image)
+            if self.hparams.dark_mode == "physical":
+                from datamodules.simulate.camera import darken_image
+
+                dark_key = f"imgdark-{recipe.key()}-{base}"
+                keys["image_dark"] = dark_key
+
+                def dark(i: int) -> np.ndarray:
+                    rng = np.random.default_rng([zlib.crc32(recording.sequence_id.encode()), i])
+                    return image_features(darken_image(frames.image(int(image_index[i])), rng), recipe).numpy()
+
+                self.cache.build(dark_key, times.size, (3, *recipe.size), np.uint8, dark)
+        return keys
+
+    # ------------------------------------------------------------------------------ loaders
+
+    def _dataset(self, split_name: str, light: str, train: bool) -> WindowDataset:
+        if not self.sequences:
+            self.setup()
+        sequences = self.sequences[split_name]
+        if not sequences:
+            raise RecordingError(f"split {split_name!r} has no sequences (check the split in the data config)")
+        offset = {sequence_id: i for i, sequence_id in enumerate(self.sequence_ids)}
+        return WindowDataset(sequences, self.cache, [offset[s.sequence_id] for s in sequences], light,
+                             self.hparams.dark_mode, self.hparams.train_dark_probability if train else 0.0)
+
+    def _loader(self, dataset: WindowDataset, shuffle: bool) -> DataLoader:
+        return DataLoader(dataset, batch_size=self.hparams.batch_size, shuffle=shuffle,
+                          num_workers=self.hparams.num_workers, drop_last=False,
+                          persistent_workers=self.hparams.num_workers > 0)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self._dataset("train", "ideal", train=True), shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader(self._dataset("val", self.hparams.light, train=False), shuffle=False)
+
+    def test_dataloader(self) -> list[DataLoader]:
+        return [self._loader(self._dataset("test", light, train=False), shuffle=False) for light in self.test_lights]
+
+    def predict_dataloader(self) -> list[DataLoader]:
+        return self.test_dataloader()
+
+
+class WindowDataset(Dataset):
+    """Samples of several sequences; features are read from the memory-mapped cache on access."""
+
+    def __init__(self, sequences: list[SequenceSamples], cache: FeatureCache, sequence_index: list[int],
+                 light: str, dark_mode: str, dark_probability: float):
+        self.sequences = sequences
+        self.cache = cache
+        self.sequence_index = sequence_index
+        self.light, self.dark_mode, self.dark_probability = light, dark_mode, dark_probability
+        self.offsets = np.cumsum([0] + [len(s) for s in sequences])
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_arrays"] = {}  # memory maps are reopened in each worker
+        return state
+
+    def _array(self, key: str) -> np.ndarray:
+        if key not in self._arrays:
+            self._arrays[key] = self.cache.open(key)
+        return self._arrays[key]
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        s = int(np.searchsorted(self.offsets, index, side="right") - 1)
+        seq, i = self.sequences[s], int(index - self.offsets[s])
+        item: dict[str, Any] = {
+            "gt": torch.as_tensor(seq.gt[i], dtype=torch.float32),
+            "gt_valid": torch.as_tensor(bool(seq.gt_valid[i])),
+            "pseudo": torch.as_tensor(seq.pseudo[i], dtype=torch.float32),
+            "pseudo_valid": torch.as_tensor(bool(seq.pseudo_valid[i])),
+            "class_id": torch.as_tensor(seq.class_id, dtype=torch.long),
+            "time": torch.as_tensor(seq.times[i], dtype=torch.float64),
+            "sequence": torch.as_tensor(self.sequence_index[s], dtype=torch.long),
+        }
+        if "audio_mel" in seq.feature_keys:
+            item["audio_mel"] = torch.from_numpy(np.array(self._array(seq.feature_keys["audio_mel"])[i]))
+        visible = float(seq.visible[i])
+        dark = self.light == "dark" or (self.dark_probability > 0 and torch.rand(()).item() < self.dark_probability)
+        if "image" in seq.feature_keys:
+            if dark and self.dark_mode == "physical":
+                image = torch.from_numpy(np.array(self._array(seq.feature_keys["image_dark"])[i]))
+            else:
+                image = torch.from_numpy(np.array(self._array(seq.feature_keys["image"])[i]))
+                if dark:
+                    image = published_dark(image)
+            item["image"] = scale_image(image)
+        if dark and self.dark_mode == "published":
+            visible = 0.0  # the published protocol marks a darkened frame as "not visible"
+        item["visible"] = torch.as_tensor(visible, dtype=torch.float32)
+        item["dark"] = torch.as_tensor(dark)
+        return item

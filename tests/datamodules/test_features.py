@@ -1,0 +1,97 @@
+"""Audio and image recipes: shapes, ranges, frequency placement, window timing, darkness."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+import torchaudio
+
+from datamodules.features import (
+    MEL_RECIPES,
+    audio_window,
+    image_features,
+    image_recipe,
+    mel_features,
+    mel_recipe,
+    published_dark,
+    scale_image,
+)
+from datamodules.recording import ArrayAudio, RecordingError
+
+FS = 48000
+
+
+@pytest.mark.parametrize("name", sorted(MEL_RECIPES))
+def test_every_recipe_has_its_shape_and_range(name):
+    recipe = mel_recipe(name)
+    x = np.random.default_rng(0).normal(size=(4, 2 * FS)).astype(np.float32)
+    out = mel_features(x, FS, recipe)
+    assert tuple(out.shape) == (4, *recipe.output_shape)
+    assert out.dtype == torch.float32 and float(out.min()) >= 0.0 and float(out.max()) <= 1.0 + 1e-6
+    expected = {"aaute": (64, 64), "avfdti": (64, 64), "avfdti_224": (224, 224), "avfdti_13": (13, 13)}[name]
+    assert recipe.output_shape == expected
+
+
+def _expected_row(recipe, frequency: float, sample_rate: float) -> float:
+    rate = recipe.mel_sample_rate or sample_rate
+    banks = torchaudio.functional.melscale_fbanks(recipe.n_fft // 2 + 1, recipe.f_min, recipe.f_max or rate / 2,
+                                                  recipe.n_mels, int(rate), norm="slaney", mel_scale="slaney")
+    bin_index = int(round(frequency / (rate / recipe.n_fft)))
+    band = int(torch.argmax(banks[bin_index]))
+    return (band + 0.5) * recipe.resize[0] / recipe.n_mels - 0.5
+
+
+@pytest.mark.parametrize(("name", "frequency"), [("aaute", 600.0), ("aaute", 1000.0), ("avfdti", 3000.0)])
+def test_pure_tone_peaks_in_its_mel_row(name, frequency):
+    recipe = mel_recipe(name)
+    t = np.arange(2 * FS) / FS
+    tone = np.tile(np.sin(2 * np.pi * frequency * t), (4, 1)).astype(np.float32)
+    out = mel_features(tone, FS, recipe)
+    row = int(torch.argmax(out[0].mean(dim=1)))
+    assert abs(row - _expected_row(recipe, frequency, FS)) <= 1.5
+
+
+def test_student_recipe_sees_only_low_frequencies():
+    recipe = mel_recipe("aaute")
+    t = np.arange(2 * FS) / FS
+    low = mel_features(np.tile(np.sin(2 * np.pi * 400 * t), (4, 1)).astype(np.float32), FS, recipe)
+    high = np.sin(2 * np.pi * 400 * t) + np.sin(2 * np.pi * 5000 * t)
+    with_high = mel_features(np.tile(high, (4, 1)).astype(np.float32), FS, recipe)
+    # 5 kHz lies above the ~1.2 kHz crop: it only changes the min-max scale, computed before the crop
+    correlation = np.corrcoef(low.flatten().numpy(), with_high.flatten().numpy())[0, 1]
+    assert correlation > 0.999
+
+
+def test_window_ends_at_the_label_time_and_faithful_order_is_newest_first():
+    fs = 1000.0
+    ramp = np.tile(np.arange(10000, dtype=np.float32), (4, 1))
+    audio = ArrayAudio(ramp, fs, t0=50.0, mic_positions=np.zeros((4, 3)))
+    recipe = mel_recipe("aaute")
+    window = audio_window(audio, 55.0, recipe, 2.0)
+    assert window.shape == (4, 2000) and window[0, -1] == 4999.0 and window[0, 0] == 3000.0
+    faithful = audio_window(audio, 55.0, recipe, 2.0, faithful_order=True)
+    starts = faithful[0, ::100]
+    assert list(starts) == [4900.0, 4700.0, 4500.0, 4300.0, 4100.0]  # idx, idx-2, ..., idx-8
+    with pytest.raises(RecordingError, match="outside the audio"):
+        audio_window(audio, 50.5, recipe, 2.0)
+
+
+def test_nan_audio_is_refused():
+    x = np.zeros((4, FS), dtype=np.float32)
+    x[2, 100] = np.nan
+    with pytest.raises(RecordingError, match="NaN"):
+        mel_features(x, FS, mel_recipe("aaute"))
+
+
+def test_image_recipe_crops_the_left_camera_and_scales():
+    frame = np.zeros((960, 2560, 3), dtype=np.uint8)
+    frame[:, 1280:] = 255  # the right camera of a UG2 side-by-side frame
+    out = image_features(frame, image_recipe("resnet256"))
+    assert tuple(out.shape) == (3, 256, 256) and out.dtype == torch.uint8 and int(out.max()) == 0
+    small = image_features(np.full((720, 1280, 3), 200, np.uint8), image_recipe("talknet112"))
+    assert tuple(small.shape) == (3, 112, 112)
+    scaled = scale_image(small)
+    assert torch.allclose(scaled, torch.full_like(scaled, 200 / 127.5 - 1))
+    dark = scale_image(published_dark(small))
+    assert torch.allclose(dark, torch.full_like(dark, 3 / 127.5 - 1))
