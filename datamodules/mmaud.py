@@ -140,6 +140,8 @@ class MMAUDDataModule(L.LightningDataModule):
         batch_size, num_workers: DataLoader settings.
         cache_dir: feature cache (default ``$AAUTE_CACHE`` or ``~/.cache/aaute/features``).
         image_tolerance_s: the camera frame must lie this close to the label time.
+        bev_bounds: [[x_min, x_max], [y_min, y_max]] (m) of the bird's-eye area that heat-map models
+            (AV-FDTI) cover; the default is the MMAUD flight region the simulator flies in.
     """
 
     def __init__(
@@ -159,8 +161,11 @@ class MMAUDDataModule(L.LightningDataModule):
         num_workers: int = 0,
         cache_dir: str | None = None,
         image_tolerance_s: float = 0.1,
+        bev_bounds: list[list[float]] | None = None,
     ):
         super().__init__()
+        if bev_bounds is None:
+            bev_bounds = [[-2.0, 8.0], [-5.0, 25.0]]
         self.save_hyperparameters()
         self.inputs = dict(inputs or {"audio_mel": "aaute"})
         unknown = set(self.inputs) - set(INPUT_KINDS)

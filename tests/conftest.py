@@ -33,3 +33,30 @@ def simulated_dir(tmp_path_factory) -> Path:
     config = SimulationConfig(duration=4.0)
     simulate_dataset(out, 3, config, seed=11, progress=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def labelled_dir(simulated_dir, tmp_path_factory) -> Path:
+    """The simulated recordings with stand-in pseudo-labels (ground truth + 0.25 m, a 0.7 s gap)."""
+    import shutil
+
+    import numpy as np
+
+    from datamodules.formats import open_recording
+    from datamodules.formats.mcap_file import replace_track
+    from datamodules.recording import Track
+
+    out = tmp_path_factory.mktemp("labelled") / "data"
+    shutil.copytree(simulated_dir, out)
+    for path in sorted(out.glob("*.mcap")):
+        gt = open_recording(path).ground_truth
+        valid = np.ones(len(gt), dtype=bool)
+        valid[25:32] = False
+        replace_track(path, "/pseudo_label", Track(gt.timestamps, gt.xyz + 0.25, valid=valid))
+    return out
+
+
+@pytest.fixture(scope="session")
+def feature_cache(tmp_path_factory) -> Path:
+    """One feature cache for the whole session (entries are keyed by recording and recipe)."""
+    return tmp_path_factory.mktemp("feature_cache")

@@ -1,7 +1,8 @@
 """The ``aaute`` command.
 
 Data and reporting subcommands (``simulate``, ``info``, ...) are plain argparse commands; the
-training subcommands (``fit``, ``validate``, ``test``, ``predict``) will be LightningCLI's.
+training subcommands (``fit``, ``validate``, ``test``, ``predict``) are LightningCLI's, configured by
+YAML files in ``configs/`` (``aaute fit --config configs/model/student.yaml --data.root DATA``).
 """
 
 from __future__ import annotations
@@ -67,8 +68,33 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+LIGHTNING_COMMANDS = ("fit", "validate", "test", "predict")
+
+
+def lightning_main(argv: Sequence[str] | None) -> None:
+    """``aaute fit|validate|test|predict``: LightningCLI over TrajectoryTask and the MMAUD DataModule."""
+    from lightning.pytorch.cli import LightningCLI
+
+    from datamodules.mmaud import MMAUDDataModule
+    from zoo.task import TrajectoryTask
+
+    LightningCLI(
+        TrajectoryTask,
+        MMAUDDataModule,
+        subclass_mode_model=True,
+        subclass_mode_data=True,
+        args=None if argv is None else list(argv),  # None: LightningCLI reads sys.argv itself
+        save_config_kwargs={"overwrite": True},
+        parser_kwargs={"prog": "aaute"},
+    )
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    given = argv
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in LIGHTNING_COMMANDS:
+        lightning_main(given)
+        return 0
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")

@@ -7,7 +7,6 @@ import pytest
 import torch
 
 from datamodules.formats import open_recording
-from datamodules.formats.mcap_file import replace_track
 from datamodules.mmaud import MMAUDDataModule
 from datamodules.recording import Recording, RecordingError, Track
 
@@ -19,21 +18,6 @@ def _module(root, tmp_path, **kwargs) -> MMAUDDataModule:
     module.prepare_data()
     module.setup("fit")
     return module
-
-
-@pytest.fixture()
-def labelled_dir(simulated_dir, tmp_path):
-    """A copy of the simulated recordings with pseudo-labels that have a gap."""
-    import shutil
-
-    out = tmp_path / "labelled"
-    shutil.copytree(simulated_dir, out)
-    for path in sorted(out.glob("*.mcap")):
-        gt = open_recording(path).ground_truth
-        valid = np.ones(len(gt), dtype=bool)
-        valid[25:32] = False
-        replace_track(path, "/pseudo_label", Track(gt.timestamps, gt.xyz + 0.25, valid=valid))
-    return out
 
 
 def test_windows_end_at_label_times_and_carry_every_target(labelled_dir, tmp_path):

@@ -1,0 +1,124 @@
+"""Every registered network and every model config: forward, learning, round trips, the CLI.
+
+Parametrised over ``list_models()`` and ``configs/model/*.yaml``, so a new network or config is
+tested without a new test file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from zoo.cli import main
+from zoo.registry import get_model, list_models
+from zoo.task import TrajectoryTask
+
+CONFIGS = sorted((Path(__file__).resolve().parents[2] / "configs" / "model").glob("*.yaml"))
+SPLIT = "{train: [sim11-0000-avata], val: [sim11-0001-m300], test: [sim11-0002-mavic2]}"
+
+
+def _batch(net, batch_size: int = 2) -> dict[str, torch.Tensor]:
+    generator = torch.Generator().manual_seed(1)
+    batch = dict(net.example_inputs(batch_size))
+    batch.update(
+        gt=torch.rand(batch_size, 3, generator=generator) * torch.tensor([8.0, 20.0, 15.0]),
+        gt_valid=torch.ones(batch_size, dtype=torch.bool),
+        class_id=torch.arange(batch_size) % 5,
+        visible=torch.ones(batch_size),
+        time=torch.arange(batch_size, dtype=torch.float64),
+        sequence=torch.zeros(batch_size, dtype=torch.long),
+    )
+    batch["pseudo"], batch["pseudo_valid"] = batch["gt"] + 0.1, batch["gt_valid"].clone()
+    return batch
+
+
+def test_the_zoo_holds_the_papers_models():
+    assert set(list_models()) >= {"student", "audionet", "voranet", "asdnet", "avped", "avfdti", "visualnet",
+                                  "darknet"}
+    with pytest.raises(ValueError, match="unknown model 'bogus'; known models: .*student"):
+        get_model("bogus")
+
+
+@pytest.mark.parametrize("name", list_models())
+def test_forward_gives_positions(name):
+    torch.manual_seed(0)
+    net = get_model(name).eval()
+    with torch.no_grad():
+        outputs = net(net.example_inputs(2))
+    assert tuple(outputs["position"].shape) == (2, 3) and torch.isfinite(outputs["position"]).all()
+
+
+@pytest.mark.parametrize("name", list_models())
+def test_one_step_lowers_the_loss_on_a_fixed_batch(name):
+    torch.manual_seed(0)
+    task = TrajectoryTask(name, alpha=0.0, lr=1e-3)
+    task.net.eval()  # no dropout: the same function before and after the step
+    batch = _batch(task.net)
+    optimiser = torch.optim.Adam(task.parameters(), lr=1e-3)
+    before, _ = task.objective(task.net(task._inputs(batch)), batch)
+    optimiser.zero_grad()
+    before.backward()
+    optimiser.step()
+    with torch.no_grad():
+        after, _ = task.objective(task.net(task._inputs(batch)), batch)
+    assert after < before
+
+
+@pytest.mark.parametrize("name", list_models())
+def test_state_dict_round_trip(name):
+    torch.manual_seed(0)
+    net = get_model(name).eval()
+    torch.manual_seed(1)
+    other = get_model(name).eval()
+    other.load_state_dict(net.state_dict())
+    inputs = net.example_inputs(1)
+    with torch.no_grad():
+        assert torch.equal(net(inputs)["position"], other(inputs)["position"])
+
+
+def test_task_mixes_ground_truth_and_pseudo_labels_with_alpha():
+    torch.manual_seed(0)
+    batch = _batch(get_model("student"), 4)
+    batch["pseudo"] = batch["gt"] + 1.0
+    terms = {}
+    for alpha in (0.0, 0.5, 1.0):
+        task = TrajectoryTask("student", alpha=alpha)
+        task.net.eval()
+        torch.manual_seed(0)
+        total, terms[alpha] = task.objective(task.net(task._inputs(batch)), batch)
+        assert float(total) == pytest.approx(float(terms[alpha]["position"]))
+    assert "position_pseudo" not in terms[0.0] and "position_gt" not in terms[1.0]
+    assert set(terms[0.5]) >= {"position_gt", "position_pseudo"}
+
+
+def test_batches_without_valid_targets_are_skipped_not_nan():
+    task = TrajectoryTask("student", alpha=1.0)
+    batch = _batch(task.net)
+    batch["pseudo_valid"][:] = False
+    total, _ = task.objective(task.net(task._inputs(batch)), batch)
+    assert total is None
+    assert task.training_step(batch, 0) is None and task.skipped_batches == 1
+
+
+def test_missing_inputs_name_what_the_model_needs():
+    task = TrajectoryTask("student")
+    batch = _batch(task.net)
+    del batch["audio_mel"]
+    with pytest.raises(ValueError, match="needs inputs .*audio_mel.*aaute"):
+        task._inputs(batch)
+    wrong = _batch(task.net)
+    wrong["audio_mel"] = torch.rand(2, 4, 13, 13)
+    with pytest.raises(ValueError, match="expects audio_mel of shape"):
+        task._inputs(wrong)
+
+
+@pytest.mark.parametrize("config", CONFIGS, ids=lambda p: p.stem)
+def test_every_model_config_fits_and_tests_through_the_cli(config, labelled_dir, feature_cache, tmp_path):
+    common = ["--config", str(config), "--data.root", str(labelled_dir), "--data.split", SPLIT,
+              "--data.window_seconds", "1.0", "--data.batch_size", "2", "--data.cache_dir", str(feature_cache),
+              "--trainer.default_root_dir", str(tmp_path), "--trainer.fast_dev_run", "true",
+              "--trainer.enable_progress_bar", "false"]
+    assert main(["fit", *common]) == 0
+    assert main(["test", *common]) == 0

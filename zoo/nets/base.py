@@ -1,0 +1,57 @@
+"""The contract every zoo network follows.
+
+A network is a plain ``nn.Module`` whose ``forward`` takes a dict of named input tensors (the
+DataModule's batch keys, e.g. ``audio_mel`` B x C x H x W and ``image`` B x 3 x H x W) and returns a
+dict with at least ``position`` (B x 3, metres); auxiliary heads add more keys. Class attributes
+declare what it consumes (input name -> recipe of :mod:`datamodules.features`), its category in
+the paper's table, and whether the position output is trained by regression (AV-FDTI decodes its
+position from a heat map and trains only its auxiliary losses). ``auxiliary_losses`` returns the
+net's own weighted loss terms given its outputs and the training targets.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import torch
+from torch import nn
+
+from datamodules.features import image_recipe, mel_recipe
+
+NUM_CLASSES = 6  #: five drone types + "no drone" (AV-FDTI class convention)
+
+
+class TrajectoryNet(nn.Module):
+    """Base class of the zoo's networks (see the module docstring)."""
+
+    model_name: ClassVar[str] = ""
+    inputs: ClassVar[dict[str, str]] = {}
+    category: ClassVar[str] = "supervised"  #: 'supervised' or 'self-supervised' (the paper's table)
+    trains_position: ClassVar[bool] = True
+
+    def __init__(self, in_channels: int = 4):
+        super().__init__()
+        self.in_channels = in_channels
+
+    def input_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Per-sample shape of each input (without the batch axis), from the declared recipes."""
+        shapes: dict[str, tuple[int, ...]] = {}
+        for name, recipe in self.inputs.items():
+            if name == "audio_mel":
+                shapes[name] = (self.in_channels, *mel_recipe(recipe).output_shape)
+            elif name == "image":
+                shapes[name] = (3, *image_recipe(recipe).size)
+        return shapes
+
+    def example_inputs(self, batch_size: int = 1) -> dict[str, torch.Tensor]:
+        """Random inputs of the reference shapes (for profiling and tests)."""
+        generator = torch.Generator().manual_seed(0)
+        return {name: torch.rand(batch_size, *shape, generator=generator) * (2 if name == "image" else 1)
+                - (1 if name == "image" else 0) for name, shape in self.input_shapes().items()}
+
+    def auxiliary_losses(
+        self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: torch.Tensor,
+        target_valid: torch.Tensor,
+    ) -> dict[str, torch.Tensor]:
+        """Weighted auxiliary loss terms (name -> scalar); ``target`` is the training position target."""
+        return {}

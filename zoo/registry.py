@@ -1,0 +1,47 @@
+"""The model registry: every zoo network registers under a name; configs refer to it by name."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from torch import nn
+
+_MODELS: dict[str, type[nn.Module]] = {}
+
+
+def register_model(name: str) -> Callable[[type[nn.Module]], type[nn.Module]]:
+    """Class decorator: make a network available as ``get_model(name)``."""
+
+    def decorate(cls: type[nn.Module]) -> type[nn.Module]:
+        if name in _MODELS and _MODELS[name] is not cls:
+            raise ValueError(f"model name {name!r} is already registered by {_MODELS[name].__qualname__}")
+        cls.model_name = name
+        _MODELS[name] = cls
+        return cls
+
+    return decorate
+
+
+def _load_zoo() -> None:
+    import zoo.nets  # noqa: F401  (registers the built-in networks)
+
+
+def model_class(name: str) -> type[nn.Module]:
+    """The class registered as ``name``; the error lists the known names."""
+    _load_zoo()
+    try:
+        return _MODELS[name]
+    except KeyError:
+        raise ValueError(f"unknown model {name!r}; known models: {', '.join(list_models())}") from None
+
+
+def get_model(name: str, **kwargs: Any) -> nn.Module:
+    """Build the network registered as ``name`` with ``kwargs``."""
+    return model_class(name)(**kwargs)
+
+
+def list_models() -> list[str]:
+    """Names of all registered networks, sorted."""
+    _load_zoo()
+    return sorted(_MODELS)

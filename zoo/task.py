@@ -1,0 +1,288 @@
+"""TrajectoryTask: the one LightningModule that trains and evaluates every zoo network.
+
+Loss (the paper's equation): ``(1 - alpha) * L(P, ground truth) + alpha * L(P, pseudo-label)``,
+each term averaged over the samples whose target is valid (alpha = 1: fully self-supervised,
+alpha = 0: supervised). L is the squared error by default ('mse': mean over x, y, z), or 'l1' as
+in the released code. The network's own auxiliary losses (class, visibility, heat map, ...) are
+added, computed against the same kind of target (pseudo-labels when alpha >= 0.5, else ground
+truth). A batch where no term has a valid target is skipped and counted, never turned into NaN.
+
+Metrics (:class:`zoo.metrics.TrajectoryError`) are logged per stage and light condition:
+``val_E``, ``val_Dx``, ... (the validation loader's condition), ``test_E_ideal``, ``test_E_dark``,
+...; errors against pseudo-labels get a ``_pseudo`` suffix. ``val_loss`` is the training objective
+on the validation split, so model selection under alpha = 1 never looks at ground truth. At
+test time predictions are collected per sequence, optionally smoothed, and written to
+``predictions_dir``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch import nn
+
+from zoo.metrics import TrajectoryError
+from zoo.registry import get_model
+
+log = logging.getLogger(__name__)
+
+LOSSES = ("mse", "l1")
+
+
+def position_loss(prediction: torch.Tensor, target: torch.Tensor, kind: str) -> torch.Tensor:
+    """Per-sample loss (B,) between predicted and target positions."""
+    error = prediction - target
+    return (error**2).mean(dim=1) if kind == "mse" else error.abs().mean(dim=1)
+
+
+class TrajectoryTask(L.LightningModule):
+    """Train / evaluate a zoo network on MMAUD windows.
+
+    Args:
+        net: registered network name (see ``zoo.registry.list_models``).
+        net_kwargs: keyword arguments of the network.
+        alpha: weight of the pseudo-label term (1 = self-supervised, 0 = supervised).
+        loss: 'mse' (squared error, the paper's equation) or 'l1' (the released code).
+        lr, weight_decay, betas: Adam settings (the papers use lr 1e-4, betas (0.9, 0.999)).
+        smooth: smooth each test sequence's predictions with the GP smoother and report both.
+        smoother: keyword arguments of :class:`zoo.smoothing.GPSmoother`.
+        predictions_dir: write per-sequence prediction CSVs there at test/predict time.
+    """
+
+    def __init__(
+        self,
+        net: str = "student",
+        net_kwargs: dict[str, Any] | None = None,
+        alpha: float = 1.0,
+        loss: str = "mse",
+        lr: float = 1e-4,
+        weight_decay: float = 0.0,
+        betas: tuple[float, float] = (0.9, 0.999),
+        smooth: bool = False,
+        smoother: dict[str, Any] | None = None,
+        predictions_dir: str | None = None,
+    ):
+        super().__init__()
+        if not 0.0 <= alpha <= 1.0:
+            raise ValueError(f"alpha must lie in [0, 1], got {alpha}")
+        if loss not in LOSSES:
+            raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+        self.save_hyperparameters()
+        self.net: nn.Module = get_model(net, **(net_kwargs or {}))
+        self.metrics = nn.ModuleDict()
+        self.skipped_batches = 0
+        self._checked_inputs = False
+        self._predictions: dict[int, list[dict[str, np.ndarray]]] = {}
+
+    # ------------------------------------------------------------------------------ helpers
+
+    def setup(self, stage: str) -> None:
+        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        bounds = getattr(getattr(datamodule, "hparams", None), "bev_bounds", None)
+        if bounds is not None and hasattr(self.net, "set_bounds"):
+            self.net.set_bounds(bounds)
+
+    def _inputs(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        wanted = dict(self.net.inputs)
+        missing = sorted(set(wanted) - set(batch))
+        if missing:
+            raise ValueError(
+                f"model {self.hparams.net!r} needs inputs {wanted}; the batch lacks {missing}: "
+                f"set data inputs to {wanted}"
+            )
+        if not self._checked_inputs:
+            for name, shape in self.net.input_shapes().items():
+                if tuple(batch[name].shape[1:]) != shape:
+                    raise ValueError(
+                        f"model {self.hparams.net!r} expects {name} of shape {shape} (recipe "
+                        f"{wanted[name]!r}), the batch holds {tuple(batch[name].shape[1:])}"
+                    )
+            self._checked_inputs = True
+        return {name: batch[name] for name in wanted}
+
+    def _training_target(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """The target of the auxiliary losses: pseudo-labels if alpha >= 0.5, else ground truth."""
+        if self.hparams.alpha >= 0.5:
+            return batch["pseudo"], batch["pseudo_valid"]
+        return batch["gt"], batch["gt_valid"]
+
+    def objective(self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]
+                  ) -> tuple[torch.Tensor | None, dict[str, torch.Tensor]]:
+        """Total loss and its terms; None when no term has a valid target."""
+        alpha, kind = self.hparams.alpha, self.hparams.loss
+        terms: dict[str, torch.Tensor] = {}
+        if getattr(self.net, "trains_position", True):
+            position = outputs["position"]
+            weighted = []
+            for weight, target, valid, name in ((1.0 - alpha, batch["gt"], batch["gt_valid"], "gt"),
+                                                (alpha, batch["pseudo"], batch["pseudo_valid"], "pseudo")):
+                if weight > 0 and valid.any():
+                    value = position_loss(position[valid], target[valid], kind).mean()
+                    terms[f"position_{name}"] = value
+                    weighted.append(weight * value)
+            if not weighted:
+                return None, terms
+            terms["position"] = torch.stack(weighted).sum()
+        target, valid = self._training_target(batch)
+        if not getattr(self.net, "trains_position", True) and not valid.any():
+            return None, terms
+        terms.update(self.net.auxiliary_losses(outputs, batch, target, valid))
+        total = sum(value for name, value in terms.items() if not name.startswith("position_"))
+        return total, terms
+
+    def _metric(self, name: str) -> TrajectoryError:
+        if name not in self.metrics:
+            self.metrics[name] = TrajectoryError().to(self.device)
+        return self.metrics[name]
+
+    def _light(self, stage: str, dataloader_idx: int) -> str:
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if stage == "val":
+            return getattr(getattr(datamodule, "hparams", None), "light", "ideal")
+        lights = getattr(datamodule, "test_lights", None) or ["ideal", "dark"]
+        return lights[dataloader_idx] if dataloader_idx < len(lights) else str(dataloader_idx)
+
+    def _log_metrics(self, prefix: str) -> None:
+        for key in [k for k in self.metrics if k.startswith(prefix)]:
+            metric = self.metrics[key]
+            for name, value in metric.compute().items():
+                parts = key.split("|")  # stage|light|reference
+                stage, light, reference = parts[0], parts[1], parts[2]
+                suffix = "" if stage == "val" else f"_{light}"
+                ref = "" if reference == "gt" else f"_{reference}"
+                self.log(f"{stage}_{name}{ref}{suffix}", value.float(), add_dataloader_idx=False)
+            metric.reset()
+
+    # ------------------------------------------------------------------------------ steps
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return self.net(inputs)
+
+    def training_step(self, batch: dict[str, torch.Tensor], batch_idx: int) -> torch.Tensor | None:
+        outputs = self.net(self._inputs(batch))
+        total, terms = self.objective(outputs, batch)
+        if total is None:
+            self.skipped_batches += 1
+            if self.skipped_batches in (1, 10, 100, 1000):
+                log.warning("skipped %d training batch(es) with no valid target", self.skipped_batches)
+            return None
+        batch_size = len(batch["gt"])
+        self.log("train_loss", total, prog_bar=True, batch_size=batch_size)
+        for name, value in terms.items():
+            self.log(f"train_{name}", value, batch_size=batch_size)
+        return total
+
+    def _evaluate(self, batch: dict[str, torch.Tensor], stage: str, dataloader_idx: int) -> dict[str, torch.Tensor]:
+        outputs = self.net(self._inputs(batch))
+        light = self._light(stage, dataloader_idx)
+        position = outputs["position"]
+        self._metric(f"{stage}|{light}|gt").update(position, batch["gt"], batch["gt_valid"])
+        self._metric(f"{stage}|{light}|pseudo").update(position, batch["pseudo"], batch["pseudo_valid"])
+        return outputs
+
+    def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0) -> None:
+        outputs = self._evaluate(batch, "val", dataloader_idx)
+        total, _ = self.objective(outputs, batch)
+        if total is not None:
+            self.log("val_loss", total, batch_size=len(batch["gt"]), add_dataloader_idx=False)
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_metrics("val|")
+
+    def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0) -> None:
+        outputs = self._evaluate(batch, "test", dataloader_idx)
+        self._collect(dataloader_idx, batch, outputs["position"])
+
+    def on_test_epoch_start(self) -> None:
+        self._predictions = {}
+
+    def on_test_epoch_end(self) -> None:
+        self._log_metrics("test|")
+        if self.hparams.smooth:
+            self._log_smoothed()
+        if self.hparams.predictions_dir:
+            self._write_predictions("test")
+
+    def predict_step(self, batch: dict[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0) -> dict:
+        position = self.net(self._inputs(batch))["position"]
+        self._collect(dataloader_idx, batch, position)
+        return {"sequence": batch["sequence"], "time": batch["time"], "position": position}
+
+    def on_predict_epoch_start(self) -> None:
+        self._predictions = {}
+
+    def on_predict_epoch_end(self) -> None:
+        if self.hparams.predictions_dir:
+            self._write_predictions("predict")
+
+    # ------------------------------------------------------------------------------ predictions
+
+    def _collect(self, dataloader_idx: int, batch: dict[str, torch.Tensor], position: torch.Tensor) -> None:
+        self._predictions.setdefault(dataloader_idx, []).append({
+            "sequence": batch["sequence"].cpu().numpy(),
+            "time": batch["time"].cpu().numpy(),
+            "position": position.detach().cpu().double().numpy(),
+            "gt": batch["gt"].cpu().double().numpy(),
+            "gt_valid": batch["gt_valid"].cpu().numpy(),
+        })
+
+    def sequence_predictions(self, dataloader_idx: int = 0) -> dict[int, dict[str, np.ndarray]]:
+        """This process's collected predictions of one loader, grouped by sequence and sorted by time."""
+        parts = self._predictions.get(dataloader_idx, [])
+        if not parts:
+            return {}
+        merged = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+        result = {}
+        for sequence in np.unique(merged["sequence"]):
+            rows = merged["sequence"] == sequence
+            order = np.argsort(merged["time"][rows], kind="stable")
+            result[int(sequence)] = {key: value[rows][order] for key, value in merged.items()}
+        return result
+
+    def _log_smoothed(self) -> None:
+        from zoo.smoothing import GPSmoother
+
+        smoother = GPSmoother(**(self.hparams.smoother or {}))
+        for dataloader_idx in sorted(self._predictions):
+            metric = TrajectoryError().to(self.device)
+            for sequence in self.sequence_predictions(dataloader_idx).values():
+                t = sequence["time"]
+                smoothed = smoother.smooth(t, sequence["position"], t).mean
+                metric.update(torch.from_numpy(np.asarray(smoothed)), torch.from_numpy(sequence["gt"]),
+                              torch.from_numpy(sequence["gt_valid"]))
+            light = self._light("test", dataloader_idx)
+            for name, value in metric.compute().items():
+                self.log(f"test_{name}_smooth_{light}", value.float(), add_dataloader_idx=False)
+
+    def _sequence_names(self) -> list[str]:
+        datamodule = getattr(self.trainer, "datamodule", None)
+        return list(getattr(datamodule, "sequence_ids", []))
+
+    def _write_predictions(self, stage: str) -> None:
+        import pandas as pd
+
+        names = self._sequence_names()
+        out = Path(self.hparams.predictions_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        for dataloader_idx in sorted(self._predictions):
+            light = self._light("test", dataloader_idx)
+            for index, sequence in self.sequence_predictions(dataloader_idx).items():
+                name = names[index] if index < len(names) else f"sequence{index}"
+                frame = pd.DataFrame({"timestamp": sequence["time"], "x": sequence["position"][:, 0],
+                                      "y": sequence["position"][:, 1], "z": sequence["position"][:, 2]})
+                path = out / f"{name}_{light}.csv"
+                tmp = path.with_name(f".{path.name}.tmp")
+                frame.to_csv(tmp, index=False, float_format="%.6f")
+                tmp.replace(path)
+        log.info("%s predictions written to %s", stage, out)
+
+    # ------------------------------------------------------------------------------ optimiser
+
+    def configure_optimizers(self) -> torch.optim.Optimizer:
+        return torch.optim.Adam(self.parameters(), lr=self.hparams.lr, betas=tuple(self.hparams.betas),
+                                weight_decay=self.hparams.weight_decay)
