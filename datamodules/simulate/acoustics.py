@@ -1,7 +1,7 @@
 """Render what each microphone records: the moving drone through air and ground, plus noise.
 
 For every microphone the received pressure is the sum of the direct path and the ground image
-path (``reference/simulation.md`` sections 2.3-2.4):
+path (``docs/simulation_sources.md`` sections 2.3-2.4):
 
     p_m(t) = D(psi) s(t_e) / r(t_e)  [* absorption(r)]  +  the same for the image source [* R(f, theta)]
 
@@ -31,7 +31,7 @@ from datamodules.simulate.trajectory import Trajectory
 
 @dataclass
 class AudioConfig:
-    """Audio simulation parameters; defaults from ``simulation.md`` sections 2-3 and 7."""
+    """Audio simulation parameters; defaults from ``simulation_sources.md`` sections 2-3 and 7."""
 
     sample_rate: float = 48000.0  #: 48 kHz default; MMAUD-derived AAUTE code uses 46080 [V S3, S4]
     microphones: str | list = "distributed4"
@@ -45,7 +45,7 @@ class AudioConfig:
     clock_drift_ppm: list[float] | None = None
     block_seconds: float = 4.0
     control_rate: float = 1000.0
-    snr_band_hz: float = 100.0  #: SNR is reported for 100 Hz - fs/2 (``simulation.md`` 2.5)
+    snr_band_hz: float = 100.0  #: SNR is reported for 100 Hz - fs/2 (``simulation_sources.md`` 2.5)
     source: SourceConfig = field(default_factory=SourceConfig)
     ambient: AmbientConfig = field(default_factory=AmbientConfig)
 

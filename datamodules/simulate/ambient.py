@@ -1,6 +1,6 @@
 """Everything the microphones hear that is not the drone: ambient field, HVAC, wind, self-noise.
 
-Defaults (``reference/simulation.md`` section 2.5 and 7):
+Defaults (``docs/simulation_sources.md`` section 2.5 and 7):
 - diffuse ambient of 45-62 dB(A) drawn per recording, pink-to-red spectrum (PSD ~ f^-p,
   p ~ U(1, 2)), spatially coherent between microphones as sinc(k d) [M]; its level wanders
   slowly by 2 dB rms (traffic, distant machinery) [E];

@@ -1,6 +1,6 @@
 """An upward-looking fisheye camera over a tropical daytime sky, with physically based low light.
 
-What it reproduces (``reference/simulation.md``, tags as there):
+What it reproduces (``docs/simulation_sources.md``, tags as there):
 
 - section 0: the MMAUD rig looks up at the sky through wide-angle/fisheye cameras whose frames show sky,
   clouds, building edges and the sun [V S1 figures]; the flights were recorded in tropical daytime
@@ -47,22 +47,22 @@ LIGHTS = ("ideal", "dark")
 
 # ------------------------------------------------------------------------------------- constants
 #: Exposure ratios r of the low-light literature (SID/ELD use x100-x300 for "extreme low light"),
-#: simulation.md 6.2 step 2 [M]; ``light='dark'`` uses ``DARK_RATIO`` unless told otherwise.
+#: simulation_sources.md 6.2 step 2 [M]; ``light='dark'`` uses ``DARK_RATIO`` unless told otherwise.
 EXPOSURE_RATIOS = (1.0, 10.0, 30.0, 100.0, 300.0)
 DARK_RATIO = 100.0
-#: Brooks et al. 2019 noise levels (S56 ``random_noise_levels``; simulation.md 6.2 step 3) [V]:
+#: Brooks et al. 2019 noise levels (S56 ``random_noise_levels``; simulation_sources.md 6.2 step 3) [V]:
 #: log lambda_shot ~ U(log 1e-4, log 0.012); log lambda_read = 2.18 log lambda_shot + 1.20 + N(0, 0.26).
 SHOT_LAMBDA_RANGE = (1e-4, 0.012)
 READ_SLOPE, READ_INTERCEPT, READ_SIGMA = 2.18, 1.20, 0.26
 #: Daylight ('ideal') noise: the lowest Brooks shot level (base ISO, about 1 / full well of a small-pixel
 #: sensor) with the read level on the regression line (S56) [V range, E choice].
 DAY_SHOT_LAMBDA = 1e-4
-#: Brooks unprocessing gains (S56; simulation.md 6.2 step 1) [V]: brightness 1 / rgb_gain ~ N(0.8, 0.1),
+#: Brooks unprocessing gains (S56; simulation_sources.md 6.2 step 1) [V]: brightness 1 / rgb_gain ~ N(0.8, 0.1),
 #: red gain ~ U(1.9, 2.4), blue gain ~ U(1.5, 1.9).
 BRIGHTNESS_MEAN, BRIGHTNESS_STD = 0.8, 0.1
 RED_GAIN_RANGE = (1.9, 2.4)
 BLUE_GAIN_RANGE = (1.5, 1.9)
-GAMMA = 2.2  #: gamma of the Brooks pipeline (S56; simulation.md 6.2 steps 1 and 4) [V]
+GAMMA = 2.2  #: gamma of the Brooks pipeline (S56; simulation_sources.md 6.2 steps 1 and 4) [V]
 #: ELD per-row banding noise (S57): in the published log-linear calibrations of public ELD
 #: re-implementations (log sigma = slope log K + bias) the row-noise scale is 0.12-0.15 of the Gaussian
 #: read-noise scale for system gains K = 1-3 [V numbers, E ratio]. Std of the row offset / read-noise std.
@@ -91,7 +91,7 @@ ROOF_LUMINANCE = 0.8
 #: curve), as metering on a bright sky does [E].
 AUTO_EXPOSURE_MEDIAN = 0.25
 #: Drone underside: lit from below by the roof (albedo ~0.3) under clear-sky global irradiance, its radiance
-#: is about 2.7 x albedo x the zenith sky radiance [E; sunny rooftop, simulation.md 0]; the albedo is the
+#: is about 2.7 x albedo x the zenith sky radiance [E; sunny rooftop, simulation_sources.md 0]; the albedo is the
 #: DroneSpec reflectivity (dark-grey DJI plastics 0.10-0.25, white Phantom 0.7).
 UNDERSIDE_FACTOR = 2.7
 #: Spinning two-blade propellers cover 10-15 % of their disc (blade solidity); over a 10-30 ms exposure the
@@ -123,7 +123,7 @@ class CameraModel:
     #: MMAUD's cameras run at 30 Hz (maintainer, MMAUD issue #42); 10 Hz matches the labels and keeps
     #: recordings small.
     frame_rate: float = 10.0  #: Hz
-    fov_deg: float = 180.0  #: across the width: 180 deg / 1280 px = 0.14 deg/px (simulation.md 6.2) [E]
+    fov_deg: float = 180.0  #: across the width: 180 deg / 1280 px = 0.14 deg/px (simulation_sources.md 6.2) [E]
     position: tuple[float, float, float] = (0.1, 0.0, 1.3)  #: rig frame (m)
     tilt_deg: float = 0.0  #: angle of the optical axis from the zenith
     tilt_azimuth_deg: float = 0.0  #: azimuth the axis tilts towards (from rig +x towards +y)
@@ -467,7 +467,7 @@ class _DroneShape:
     def of(cls, drone: DroneSpec) -> _DroneShape:
         """X-frame with the motors at the corners of the L x W planform, body 0.5 L x 0.44 W [E].
 
-        MMAUD's size table swaps width and height for the Mavic 3 and the Avata (simulation.md section 0,
+        MMAUD's size table swaps width and height for the Mavic 3 and the Avata (simulation_sources.md section 0,
         "sic"), so the two largest dimensions are the planform and the smallest is the height.
         """
         length, width, height = sorted(drone.size_m, reverse=True)

@@ -1,6 +1,6 @@
 """The sound a drone emits: rotor harmonics, broadband noise and motor whine, driven by its flight.
 
-Model (``reference/simulation.md`` sections 1.1-1.3 and 7):
+Model (``docs/simulation_sources.md`` sections 1.1-1.3 and 7):
 - each rotor turns at n_i(t) = n_thrust(t) (1 + d_i(t) + e_i(t)): the thrust law n ~ sqrt(T)
   from the trajectory's acceleration and drag; d_i a slow per-rotor offset of +-2 % for attitude
   and yaw control [M]; e_i the turbulence-driven fluctuation with sigma_N/N = 0.005 + 0.0052
@@ -11,7 +11,7 @@ Model (``reference/simulation.md`` sections 1.1-1.3 and 7):
   the shaft phase, so the signal at any retarded time is exact up to table interpolation;
 - broadband noise with PSD ~ f^-p, p ~ U(1, 2), at -10 dB re the tonal energy, and a motor whine
   band of 8-12 kHz at -20 dB [E], generated at twice the output rate and read at the retarded
-  time by cubic Lagrange interpolation (``simulation.md`` 2.3, option 1);
+  time by cubic Lagrange interpolation (``simulation_sources.md`` 2.3, option 1);
 - level: A-weighted sound power LWA of the drone type +-3 dB per flight [V Mavic 3 / E others],
   plus 50 log10(n / n_hover) dB with rpm (between the 40-60 log10 of loading-noise theory and the
   Mavic 2's measured +3.5 dB per 1000 rpm) [M/V], plus a slow per-rotor amplitude fluctuation of
@@ -32,7 +32,7 @@ from datamodules.simulate.propagation import AIR_DENSITY, a_weighting_db, level_
 from datamodules.simulate.trajectory import Trajectory
 
 #: Directivity table: elevation of the observer relative to the rotor plane (deg, negative =
-#: below the drone) -> gain (dB) before normalisation (``simulation.md`` 1.3 [V/E]).
+#: below the drone) -> gain (dB) before normalisation (``simulation_sources.md`` 1.3 [V/E]).
 DIRECTIVITY_ELEVATION_DEG = np.array([-90.0, -75.0, -60.0, -45.0, -30.0, -15.0, 0.0, 30.0, 60.0, 90.0])
 DIRECTIVITY_GAIN_DB = np.array([-4.5, -1.0, 2.0, 2.5, 2.0, 1.0, 0.0, 0.0, -1.5, -4.5])
 

@@ -1,6 +1,6 @@
 """The five MMAUD drone types: size, mass, rotors, acoustic and optical properties.
 
-Sources (tags as in ``reference/simulation.md``):
+Sources (tags as in ``docs/simulation_sources.md``):
 - sizes L x W x H and the "RCS" (= planform area L x W): MMAUD README, ``drone_charactics.png`` [V];
 - masses, propeller diameters and blade counts: DJI specifications [M];
 - hover rpm: Mavic 2 6150 and Phantom 4 6300 rpm from Heutschi et al. 2020 (via
@@ -72,7 +72,7 @@ def rpm_for_thrust(spec: DroneSpec, acceleration: np.ndarray, gravity: float = 9
     """Mean rotor rpm needed for a body acceleration (N x 3, m/s^2, z up).
 
     Thrust balances gravity plus the acceleration, T = m |a + g z|, and rotor speed follows
-    momentum theory, n ~ sqrt(T) (``simulation.md`` section 1.2, "RPM change with manoeuvre").
+    momentum theory, n ~ sqrt(T) (``simulation_sources.md`` section 1.2, "RPM change with manoeuvre").
     """
     acceleration = np.asarray(acceleration, dtype=np.float64)
     total = acceleration + np.array([0.0, 0.0, gravity])

@@ -10,9 +10,9 @@ A pulse returns a point when it
 
 A pulse into the empty sky returns nothing. Points are written in the rig frame (z up, origin on
 the roof under the rig), as the UG2 data hold LiDAR points and ground truth in one frame
-(``reference/mmaud_and_teacher.md`` section 2.2 [V]).
+(the MMAUD UG2 validation sample (``docs/simulation_sources.md`` section 5) [V]).
 
-Sources are cited as in ``reference/simulation.md``: section 5.1 specifications [V S42, S44],
+Sources are cited as in ``docs/simulation_sources.md``: section 5.1 specifications [V S42, S44],
 section 5.2 scan patterns [E], section 5.3 points on a drone and detection [E], section 5.4 noise [V S42/E].
 """
 
@@ -43,7 +43,7 @@ def _fraction(x: np.ndarray) -> np.ndarray:
 class Mid360Pattern:
     """Four beams sweeping azimuth while their elevations zig-zag over the vertical FOV.
 
-    ``reference/simulation.md`` section 5.2 [E]: each beam turns once per ``1 / azimuth_rate_hz``
+    ``docs/simulation_sources.md`` section 5.2 [E]: each beam turns once per ``1 / azimuth_rate_hz``
     (10 Hz: every azimuth is passed by all four beams in each 0.1 s frame), and its elevation follows
     a triangle wave at its own, mutually incommensurate rate, so successive frames fill the gaps and
     coverage of 1 deg cells builds over 3-5 frames (SR-LIO notes [V S54]). The triangle runs in
@@ -74,7 +74,7 @@ class Mid360Pattern:
 class RosettePattern:
     """Risley-prism rosette of the Avia: two counter-rotating terms, six emitters side by side.
 
-    ``reference/simulation.md`` section 5.2 [V S50, M; parameters E]: the off-axis vector is
+    ``docs/simulation_sources.md`` section 5.2 [V S50, M; parameters E]: the off-axis vector is
     u(t) = (e^{i 2 pi f1 t} + e^{i 2 pi f2 t}) / 2 with f2 = -f1 / phi (phi the golden ratio, so the
     pattern never repeats); its length |cos(pi (f1 - f2) t)| passes through the centre (f1 - f2) times
     a second, i.e. 10 petals per 0.1 s frame of 10 ms each, each frame rotated by 65 deg from the last.
@@ -138,7 +138,7 @@ class LidarModel:
 
     @classmethod
     def mid360(cls, **overrides: Any) -> LidarModel:
-        """Livox Mid-360, ``reference/simulation.md`` section 5.1 [V S42, S43] unless noted.
+        """Livox Mid-360, ``docs/simulation_sources.md`` section 5.1 [V S42, S43] unless noted.
 
         200,000 pts/s at 10 Hz, 360 x (-7 ... 52) deg, 40 m @ 10 % (100 klx), blind zone 0.1 m,
         range noise 2 cm, angular noise 0.15 deg, false alarms < 0.01 %. Beam divergence is not
@@ -161,12 +161,13 @@ class LidarModel:
 
     @classmethod
     def avia(cls, **overrides: Any) -> LidarModel:
-        """Livox Avia, ``reference/simulation.md`` section 5.1 [V S44] unless noted.
+        """Livox Avia, ``docs/simulation_sources.md`` section 5.1 [V S44] unless noted.
 
         240,000 pts/s (first return) at 10 Hz [10 Hz: M], non-repetitive 70.4 x 77.2 deg rosette,
         190 m @ 10 % (100 klx), blind zone 1 m, range noise 2 cm, angular noise 0.05 deg, beam
-        divergence 0.28 x 0.03 deg, range gate 450 m (80 % @ 0 klx; real false returns reach 434 m,
-        ``reference/mmaud_and_teacher.md`` section 4.1). Mounted at (0, 0, 1.35) m pointing at the
+        divergence 0.28 x 0.03 deg, range gate 450 m (80 % @ 0 klx; real false returns reach 434 m in
+        the MMAUD UG2 validation sample, ``docs/simulation_sources.md`` section 5). Mounted at
+        (0, 0, 1.35) m pointing at the
         zenith [E, the upward cone of the S1 figures]; ``tilt_deg`` tilts it.
         """
         values: dict[str, Any] = dict(
@@ -210,7 +211,7 @@ class LidarModel:
     def detection_probability(self, apparent_reflectivity: np.ndarray, ranges: np.ndarray) -> np.ndarray:
         """P_det = logistic((SNR_dB - offset) / slope) with SNR relative to the spec target at the spec range.
 
-        Received power goes as reflectivity x incidence cosine x fill / R^2 (``reference/simulation.md``
+        Received power goes as reflectivity x incidence cosine x fill / R^2 (``docs/simulation_sources.md``
         section 5.3 [E]); ``apparent_reflectivity`` is that product's numerator. With the defaults an
         extended 10 % target facing the sensor is detected with probability 0.5 at ``detection_range_m``.
         """
@@ -226,7 +227,7 @@ class LidarModel:
 
 @dataclass(frozen=True)
 class DroneReturnModel:
-    """How a drone returns LiDAR pulses (``reference/simulation.md`` section 5.3 and 7 [E]).
+    """How a drone returns LiDAR pulses (``docs/simulation_sources.md`` section 5.3 and 7 [E]).
 
     The drone is a box of its spec's L x W x H, yawed by ``yaw_rad`` (L along x at 0). A pulse whose
     footprint (divergence x range) overlaps the box's silhouette returns with probability
@@ -247,7 +248,7 @@ class DroneReturnModel:
 class SunGlare:
     """The sun in the FOV: pulses within ``cone_deg`` of it get ``boost`` times the false-alarm ratio.
 
-    "x5-x20 in a 5-10 deg cone around the sun direction" (``reference/simulation.md`` section 5.4 [E]);
+    "x5-x20 in a 5-10 deg cone around the sun direction" (``docs/simulation_sources.md`` section 5.4 [E]);
     it matters for the upward Avia around noon in Singapore.
     """
 

@@ -1,9 +1,9 @@
 """Microphone geometries (rig frame, z up, metres above the roof surface).
 
-MMAUD has "four audio array nodes" but publishes no geometry (``simulation.md`` section 3, 8).
+MMAUD has "four audio array nodes" but publishes no geometry (``simulation_sources.md`` section 3, 8).
 The default, ``distributed4``, puts four single-microphone nodes on the corners of a 3 m square
 around the rig at heights 0.2, 0.7, 1.2 and 1.7 m with one shared sample clock (DESIGN.md
-section 5): a small single array observes direction only, not range (``simulation.md`` 4.3), and
+section 5): a small single array observes direction only, not range (``simulation_sources.md`` 4.3), and
 the spread heights make the ground-reflection interference differ between channels.
 ``respeaker4`` (45.7 mm square, ReSpeaker USB Mic Array v2.0) and ``respeaker6`` (R = 46.3 mm)
 are the arrays of the NTU group's related work [V S6, S7, S38, S39]; they sit at 1.2 m here.

@@ -1,6 +1,6 @@
 """Outdoor sound propagation physics: speed of sound, ISO 9613-1 absorption, A-weighting, ground.
 
-Sources (tags as in ``reference/simulation.md``): speed of sound and ISO 9613-1 air absorption,
+Sources (tags as in ``docs/simulation_sources.md``): speed of sound and ISO 9613-1 air absorption,
 section 2.1-2.2 [M/V, S25]; the A-weighting curve of IEC 61672-1 [M]; ground reflection as an
 image source, hard surfaces Q ~ 0.95-1.0 and grass from the Delany-Bazley impedance with a flow
 resistivity of 100-300 kPa s/m^2, section 2.4 [M].
@@ -29,7 +29,7 @@ def absorption_db_per_m(
     """Pure-tone atmospheric absorption coefficient alpha(f) in dB/m (ISO 9613-1:1993, eq. 3-5).
 
     At 30 C and 75 % RH this gives 7.4 dB/km at 1 kHz and 58 dB/km at 8 kHz
-    (``simulation.md`` section 2.2 table).
+    (``simulation_sources.md`` section 2.2 table).
     """
     f = np.asarray(frequency, dtype=np.float64)
     temp = temperature_c + 273.15
@@ -78,10 +78,10 @@ class GroundSurface:
         return (z_rel * cos_theta - 1.0) / (z_rel * cos_theta + 1.0)
 
 
-#: Concrete rooftop (the MMAUD V1 site) and asphalt: hard, Q = 0.95 (``simulation.md`` 2.4 [M]).
+#: Concrete rooftop (the MMAUD V1 site) and asphalt: hard, Q = 0.95 (``simulation_sources.md`` 2.4 [M]).
 CONCRETE = GroundSurface("concrete", reflection_factor=0.95)
 ASPHALT = GroundSurface("asphalt", reflection_factor=0.95)
-#: Grass: Delany-Bazley with sigma = 200 kPa s/m^2 (middle of 100-300, ``simulation.md`` 2.4 [M]).
+#: Grass: Delany-Bazley with sigma = 200 kPa s/m^2 (middle of 100-300, ``simulation_sources.md`` 2.4 [M]).
 GRASS = GroundSurface("grass", flow_resistivity=2.0e5)
 GROUNDS = {g.name: g for g in (CONCRETE, ASPHALT, GRASS)}
 

@@ -1,6 +1,6 @@
 """Static background of an MMAUD site as a few primitives, with vectorised ray casting.
 
-MMAUD's rig stands on a rooftop or in a car park and looks up at the sky (``reference/simulation.md``
+MMAUD's rig stands on a rooftop or in a car park and looks up at the sky (``docs/simulation_sources.md``
 section 0 [V S1]). What a LiDAR sees besides the drone is the roof slab (beyond about
 h / tan 7 deg ~ 10 m for the Mid-360), parapets, HVAC boxes, stair housings, neighbouring facades
 and, in the car park, cars, lamp posts and trees; the sky returns nothing (section 5.4 [E from S1]).
@@ -22,7 +22,8 @@ that keep the MMAUD flight region (x in [-2, 8], y in [-5, 25], z in [0.5, 25] m
 :meth:`Scene.jittered` moves the movable primitives a little with a seeded generator to vary
 the background between simulated recordings. Layout numbers are estimates [E] chosen so that a
 Mid-360 frame holds a few thousand background returns, as the real UG2 frames do (3,900-4,400
-of ~20,000, ``reference/mmaud_and_teacher.md`` section 2.2 [M]), with a similar elevation spread
+of ~20,000 in the MMAUD UG2 validation sample, ``docs/simulation_sources.md`` section 5 [M]), with a
+similar elevation spread
 (most returns within a few degrees of the horizon, ground at 8-40 m, facades up to ~50 deg).
 """
 
@@ -34,7 +35,7 @@ import numpy as np
 
 #: Rays must travel at least this far (m) before a hit counts (avoids self-hits at the origin).
 _T_MIN = 1e-4
-#: The flight region of MMAUD drones (reference/simulation.md section 0 [V S2, S3]); presets keep it clear.
+#: The flight region of MMAUD drones (docs/simulation_sources.md section 0 [V S2, S3]); presets keep it clear.
 FLIGHT_REGION = ((-2.0, -5.0, 0.5), (8.0, 25.0, 25.0))
 
 

@@ -5,7 +5,7 @@ cruise speed) flown by a point mass under an acceleration- and speed-limited con
 an Ornstein-Uhlenbeck gust disturbance, integrated at 100 Hz and interpolated by a cubic spline
 so that position, velocity and acceleration can be queried at audio rate.
 
-Defaults (``reference/simulation.md`` sections 0 and 7): region x in [-2, 8], y in [-5, 25],
+Defaults (``docs/simulation_sources.md`` sections 0 and 7): region x in [-2, 8], y in [-5, 25],
 z in [0.5, 25] m relative to the rig (AAUTE paper's 10 x 30 x 25 m region, AV-FDTI heat-map
 bounds, TAME ground truth) [V]; speeds 0-5 m/s with a mode near 1 m/s (MMAUD speed histograms,
 TAME ground truth) [V/E]; accelerations <= 3 m/s^2, climb <= 2 m/s, hovers of 2-10 s [E].

@@ -11,7 +11,7 @@ from datamodules.simulate.lidar import LidarModel, SunGlare, simulate_lidar
 from datamodules.simulate.scene import Box, Cylinder, Plane, Scene, Sphere, make_scene
 from datamodules.simulate.trajectory import Trajectory
 
-#: reference/simulation.md section 5.3: expected drone points per frame, Avia from below and
+#: docs/simulation_sources.md section 5.3: expected drone points per frame, Avia from below and
 #: Mid-360 side-on, at 10 / 20 m. Only rows whose numbers follow from drones.py's sizes are used
 #: (the Mavic 3 and Avata rows were computed from MMAUD's "RCS" column, which disagrees with L x W).
 TABLE = {
