@@ -196,6 +196,11 @@ class MMAUDDataModule(L.LightningDataModule):
             self._index()  # other ranks: the caches exist by now, only the index is rebuilt
 
     @property
+    def sequence_paths(self) -> list[Path]:
+        """The file or folder of each sequence, in :attr:`sequence_ids` order."""
+        return [s.path for name in SPLITS for s in self.sequences.get(name, [])]
+
+    @property
     def sequence_ids(self) -> list[str]:
         """All sequence ids in a fixed order; batches carry an index into this list."""
         return [s.sequence_id for name in SPLITS for s in self.sequences.get(name, [])]

@@ -52,6 +52,8 @@ class TrajectoryTask(L.LightningModule):
         smooth: smooth each test sequence's predictions with the GP smoother and report both.
         smoother: keyword arguments of :class:`zoo.smoothing.GPSmoother`.
         predictions_dir: write per-sequence prediction CSVs there at test/predict time.
+        predictions_topic: also store each sequence's predictions in its MCAP recording under this
+            topic (e.g. ``/prediction/student``) at predict time.
     """
 
     def __init__(
@@ -66,6 +68,7 @@ class TrajectoryTask(L.LightningModule):
         smooth: bool = False,
         smoother: dict[str, Any] | None = None,
         predictions_dir: str | None = None,
+        predictions_topic: str | None = None,
     ):
         super().__init__()
         if not 0.0 <= alpha <= 1.0:
@@ -219,6 +222,8 @@ class TrajectoryTask(L.LightningModule):
     def on_predict_epoch_end(self) -> None:
         if self.hparams.predictions_dir:
             self._write_predictions("predict")
+        if self.hparams.predictions_topic:
+            self._store_predictions(self.hparams.predictions_topic)
 
     # ------------------------------------------------------------------------------ predictions
 
@@ -280,6 +285,19 @@ class TrajectoryTask(L.LightningModule):
                 frame.to_csv(tmp, index=False, float_format="%.6f")
                 tmp.replace(path)
         log.info("%s predictions written to %s", stage, out)
+
+    def _store_predictions(self, topic: str) -> None:
+        """Write the first loader's predictions into each sequence's MCAP file as a track topic."""
+        from datamodules.formats.mcap_file import replace_track
+        from datamodules.recording import Track
+
+        paths = list(getattr(getattr(self.trainer, "datamodule", None), "sequence_paths", []))
+        for index, sequence in self.sequence_predictions(0).items():
+            path = paths[index] if index < len(paths) else None
+            if path is None or Path(path).suffix != ".mcap":
+                raise ValueError(f"predictions_topic needs MCAP recordings; sequence {index} is {path}")
+            replace_track(path, topic, Track(sequence["time"], sequence["position"]))
+        log.info("predictions stored under %s in %d recording(s)", topic, len(paths))
 
     # ------------------------------------------------------------------------------ optimiser
 

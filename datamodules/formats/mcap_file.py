@@ -535,6 +535,11 @@ def _read_track(index: McapIndex, topic: str) -> Track | None:
     return track
 
 
+def read_track(path: str | Path, topic: str) -> Track | None:
+    """Any track topic of an MCAP recording (e.g. stored predictions), or None if it is absent."""
+    return _read_track(McapIndex(Path(path)), topic)
+
+
 def read_mcap(path: str | Path) -> Recording:
     """Open an MCAP recording lazily: small topics are read now, audio/LiDAR/images on demand."""
     index = McapIndex(Path(path))

@@ -122,3 +122,26 @@ def test_every_model_config_fits_and_tests_through_the_cli(config, labelled_dir,
               "--trainer.enable_progress_bar", "false"]
     assert main(["fit", *common]) == 0
     assert main(["test", *common]) == 0
+
+
+def test_predict_writes_trajectories_as_csv_and_into_the_recording(labelled_dir, feature_cache, tmp_path):
+    import shutil
+
+    import pandas as pd
+
+    from datamodules.formats.mcap_file import read_track
+
+    data = tmp_path / "data"
+    shutil.copytree(labelled_dir, data)
+    out = tmp_path / "predictions"
+    args = ["predict", "--config", str(CONFIGS[0].with_name("student.yaml")), "--data.root", str(data),
+            "--data.split", "{test: [sim11-0002-mavic2]}", "--data.test_lights", "[ideal]",
+            "--data.window_seconds", "1.0", "--data.cache_dir", str(feature_cache),
+            "--model.predictions_dir", str(out), "--model.predictions_topic", "/prediction/student",
+            "--trainer.default_root_dir", str(tmp_path), "--trainer.enable_progress_bar", "false"]
+    assert main(args) == 0
+    table = pd.read_csv(out / "sim11-0002-mavic2_ideal.csv")
+    assert list(table.columns) == ["timestamp", "x", "y", "z"] and len(table) == 30
+    assert table["timestamp"].is_monotonic_increasing
+    stored = read_track(next(data.glob("*0002.mcap")), "/prediction/student")
+    assert len(stored) == 30 and abs(stored.xyz - table[["x", "y", "z"]].to_numpy()).max() < 1e-5
