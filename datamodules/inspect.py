@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from datamodules.formats import open_recording
+from datamodules.formats import detect_layout, open_recording
 
 
 def _rate(timestamps: np.ndarray) -> float:
@@ -22,12 +22,23 @@ def _gaps(timestamps: np.ndarray, factor: float = 2.0) -> int:
     return int(np.count_nonzero(steps > factor * np.median(steps)))
 
 
-def describe(path: Path, sample_frames: int = 5) -> dict[str, Any]:
-    """Streams, rates, spans and counts of one recording (LiDAR point counts from a few frames)."""
-    recording = open_recording(path)
+def _format(path: Path, source: str | None) -> str:
+    """The on-disk layout, with the original source of a converted MCAP in brackets."""
+    layout = detect_layout(path)
+    return f"{layout} ({source})" if source and source != layout else layout
+
+
+def describe(path: Path, sample_frames: int = 5, **options: Any) -> dict[str, Any]:
+    """Streams, rates, spans and counts of one recording (LiDAR point counts from a few frames).
+
+    ``options`` go to :func:`open_recording` (e.g. ``sample_rate`` for the derived npy layout).
+    """
+    path = Path(path)
+    recording = open_recording(path, **options)
     start, end = recording.time_span()
     row: dict[str, Any] = {
         "recording": str(path.name),
+        "format": _format(path, recording.meta.get("source_format")),
         "sequence": recording.sequence_id,
         "drone": recording.drone or "-",
         "span_s": round(end - start, 2),
@@ -35,6 +46,9 @@ def describe(path: Path, sample_frames: int = 5) -> dict[str, Any]:
     audio = recording.audio
     row["audio"] = (f"{audio.num_channels}ch {audio.sample_rate:g}Hz {audio.duration:.1f}s"
                     if audio is not None else "-")
+    audio_gaps = recording.meta.get("audio_gaps") or recording.meta.get("audio_missing_chunks")
+    if audio is not None and audio_gaps:
+        row["audio"] += f" gaps:{audio_gaps}"
     for sensor in ("mid360", "avia"):
         clouds = recording.lidar.get(sensor)
         if clouds is None or len(clouds) == 0:

@@ -33,11 +33,40 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return _cmd_info(argparse.Namespace(paths=paths))
 
 
+def _reader_options(args: argparse.Namespace) -> dict:
+    """Options for reading non-MCAP layouts that were given on the command line."""
+    names = ("sample_rate", "mapping", "channels", "sample_format")
+    return {name: getattr(args, name) for name in names if getattr(args, name, None) is not None}
+
+
+def _add_reader_options(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("reading real MMAUD layouts (derived npy, ROS 1 bags)")
+    group.add_argument("--sample-rate", type=float,
+                       help="audio sample rate of the derived npy layout, or of bags without an AudioInfo topic "
+                            "(46080 in the AAUTE code, 48000 elsewhere; default 48000)")
+    group.add_argument("--mapping", type=Path, help="YAML topic mapping for ROS 1 bags (audio, mid360, avia, ...)")
+    group.add_argument("--channels", type=int, help="audio channels of bags without AudioInfo (default 4)")
+    group.add_argument("--sample-format", choices=["S16LE", "S32LE", "F32LE"],
+                       help="audio sample format of bags without AudioInfo (default S16LE)")
+
+
 def _cmd_info(args: argparse.Namespace) -> int:
+    from datamodules.formats import discover_recordings
     from datamodules.inspect import describe, format_table
 
-    rows = [describe(Path(p)) for p in args.paths]
+    options = _reader_options(args)
+    paths = [found for p in args.paths for found in discover_recordings(Path(p))]
+    rows = [describe(path, **options) for path in paths]
     sys.stdout.write(format_table(rows) + "\n")
+    return 0
+
+
+def _cmd_convert(args: argparse.Namespace) -> int:
+    from datamodules.convert import convert
+
+    written = convert(args.src, args.dst, overwrite=args.overwrite, audio_format=args.audio_format,
+                      **_reader_options(args))
+    log.info("%d MCAP recording(s) written to %s", len(written), args.dst)
     return 0
 
 
@@ -62,9 +91,19 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--workers", type=int, default=1, help="parallel processes")
     sim.set_defaults(func=_cmd_simulate)
 
-    info = sub.add_parser("info", help="what recordings hold")
+    info = sub.add_parser("info", help="what recordings hold (files or folders of any layout)")
     info.add_argument("paths", nargs="+", type=Path)
+    _add_reader_options(info)
     info.set_defaults(func=_cmd_info)
+
+    conv = sub.add_parser("convert", help="convert recordings of any layout (UG2, derived npy, ROS 1 bags) to MCAP")
+    conv.add_argument("src", type=Path, help="a recording, or a folder / list file holding several")
+    conv.add_argument("dst", type=Path, help="an .mcap file (one recording) or a folder (one MCAP per sequence)")
+    conv.add_argument("--overwrite", action="store_true", help="replace existing MCAP files")
+    conv.add_argument("--audio-format", choices=["S16LE", "S32LE", "F32LE"],
+                      help="sample format of the written audio (default: the source's own)")
+    _add_reader_options(conv)
+    conv.set_defaults(func=_cmd_convert)
     return parser
 
 
