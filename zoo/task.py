@@ -302,5 +302,6 @@ class TrajectoryTask(L.LightningModule):
     # ------------------------------------------------------------------------------ optimiser
 
     def configure_optimizers(self) -> torch.optim.Optimizer:
+        # the fused kernel is several times faster than the per-tensor loop on CPU, same update rule
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr, betas=tuple(self.hparams.betas),
-                                weight_decay=self.hparams.weight_decay)
+                                weight_decay=self.hparams.weight_decay, fused=True)
