@@ -70,6 +70,43 @@ def _cmd_convert(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_label(args: argparse.Namespace) -> int:
+    from datamodules.inspect import format_table
+    from datamodules.label import label_paths
+    from datamodules.teacher import TeacherConfig
+    from datamodules.teacher.evaluate import pool_scores
+
+    overrides = {}
+    for item in args.param:
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise ValueError(f"--param expects NAME=VALUE, got {item!r}")
+        overrides[name.strip()] = value.strip()
+    config = TeacherConfig.from_overrides(overrides)
+    paths = [*args.paths, *args.data]
+    if not paths:
+        raise ValueError("aaute label: give recordings or folders to label (PATH... or --data ROOT)")
+    outcomes = label_paths(paths, config, workers=args.workers, write=not args.no_write,
+                           evaluate=args.evaluate, skip_existing=args.skip_existing, max_range_m=args.max_range,
+                           reader_options=_reader_options(args))
+    rows = [o.as_row() for o in outcomes]
+    columns = list(dict.fromkeys(k for row in rows for k in row))
+    sys.stdout.write(format_table([{k: row.get(k, "") for k in columns} for row in rows]) + "\n")
+    scores = [o.score for o in outcomes if o.score is not None]
+    if args.evaluate:
+        if scores:
+            pooled = pool_scores(scores).as_row()
+            sys.stdout.write("all recordings: " + ", ".join(
+                f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in pooled.items()
+                if k != "sequence") + "\n")
+        else:
+            log.warning("no recording holds ground truth: nothing to evaluate")
+    failed = [o for o in outcomes if o.error]
+    if failed:
+        log.error("%d of %d recording(s) failed", len(failed), len(outcomes))
+    return 1 if failed else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="aaute", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -104,6 +141,20 @@ def build_parser() -> argparse.ArgumentParser:
                       help="sample format of the written audio (default: the source's own)")
     _add_reader_options(conv)
     conv.set_defaults(func=_cmd_convert)
+
+    lab = sub.add_parser("label", help="LiDAR pseudo-labels (the teacher) for recordings of any layout")
+    lab.add_argument("paths", nargs="*", type=Path, help="recordings, or folders holding them")
+    lab.add_argument("--data", action="append", type=Path, default=[], help="a dataset root (same as a path)")
+    lab.add_argument("--workers", type=int, default=1, help="recordings labelled in parallel processes")
+    lab.add_argument("--evaluate", action="store_true",
+                     help="report the teacher's error and coverage against ground truth where it exists")
+    lab.add_argument("--max-range", type=float, help="evaluate only ground truth within this distance (m) of a LiDAR")
+    lab.add_argument("--no-write", action="store_true", help="do not store the tracks (with --evaluate: a dry run)")
+    lab.add_argument("--skip-existing", action="store_true", help="leave recordings that carry pseudo-labels alone")
+    lab.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                     help="teacher parameter (a TeacherConfig field), repeatable, e.g. --param max_gap_s=2")
+    _add_reader_options(lab)
+    lab.set_defaults(func=_cmd_label)
     return parser
 
 
