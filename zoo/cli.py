@@ -107,6 +107,19 @@ def _cmd_label(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def _cmd_smooth(args: argparse.Namespace) -> int:
+    from zoo.smoothing import smooth_track_file
+
+    options = {"preset": args.preset, "backend": args.backend, "fit": args.fit}
+    if args.horizon is not None:
+        options["horizon"] = args.horizon
+    track = smooth_track_file(args.src, args.dst, **options)
+    beyond = int(track.beyond_horizon.sum())
+    log.info("%d points smoothed with the %s backend%s", len(track), track.backend,
+             f"; {beyond} lie beyond the {track.horizon:g} s horizon" if beyond else "")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="aaute", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -155,6 +168,17 @@ def build_parser() -> argparse.ArgumentParser:
                      help="teacher parameter (a TeacherConfig field), repeatable, e.g. --param max_gap_s=2")
     _add_reader_options(lab)
     lab.set_defaults(func=_cmd_label)
+
+    smooth = sub.add_parser("smooth", help="GP-smooth a track CSV (timestamp,x,y,z) and add per-axis std")
+    smooth.add_argument("src", type=Path)
+    smooth.add_argument("dst", type=Path)
+    smooth.add_argument("--preset", choices=["paper", "tuned"], default="tuned",
+                        help="paper: RBF, lengthscale 300 x 10 ms, noise 2, outputscale 1; tuned: Matern-5/2 "
+                             "learned on real MMAUD predictions (default)")
+    smooth.add_argument("--backend", default="auto", help="auto | exact | statespace | local")
+    smooth.add_argument("--fit", action="store_true", help="fit the hyperparameters by marginal likelihood first")
+    smooth.add_argument("--horizon", type=float, help="flag query times farther than this (s) from any data")
+    smooth.set_defaults(func=_cmd_smooth)
     return parser
 
 

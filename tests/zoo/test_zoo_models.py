@@ -150,3 +150,21 @@ def test_predict_writes_trajectories_as_csv_and_into_the_recording(labelled_dir,
     assert table["timestamp"].is_monotonic_increasing
     stored = read_track(next(data.glob("*0002.mcap")), "/prediction/student")
     assert len(stored) == 30 and abs(stored.xyz - table[["x", "y", "z"]].to_numpy()).max() < 1e-5
+
+
+def test_smooth_command_writes_std_columns(tmp_path):
+    import numpy as np
+    import pandas as pd
+
+    t = 1692845357.0 + np.arange(200) * 0.1
+    truth = np.column_stack([np.sin(t / 5), np.cos(t / 7), 5 + 0 * t])
+    noisy = truth + np.random.default_rng(0).normal(0, 0.5, truth.shape)
+    src = tmp_path / "track.csv"
+    pd.DataFrame({"timestamp": t, "x": noisy[:, 0], "y": noisy[:, 1], "z": noisy[:, 2]}).to_csv(src, index=False)
+    assert main(["smooth", str(src), str(tmp_path / "smooth.csv")]) == 0
+    out = pd.read_csv(tmp_path / "smooth.csv")
+    assert list(out.columns) == ["timestamp", "x", "y", "z", "std_x", "std_y", "std_z"]
+    smoothed_error = np.linalg.norm(out[["x", "y", "z"]].to_numpy() - truth, axis=1).mean()
+    assert smoothed_error < 0.5 * np.linalg.norm(noisy - truth, axis=1).mean()
+    assert main(["smooth", str(tmp_path / "missing.csv"), str(tmp_path / "never.csv")]) == 2
+    assert not (tmp_path / "never.csv").exists()
