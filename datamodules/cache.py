@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from datamodules.atomic import atomic_write
+
 log = logging.getLogger(__name__)
 
 
@@ -72,18 +74,12 @@ class FeatureCache:
         final = self.path(key)
         if final.is_file():
             return final
-        self.root.mkdir(parents=True, exist_ok=True)
-        tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-        try:
+        with atomic_write(final) as tmp:
             array = np.lib.format.open_memmap(tmp, mode="w+", dtype=dtype, shape=(count, *shape))
             for i in range(count):
                 array[i] = compute(i)
             array.flush()
             del array
-            os.replace(tmp, final)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
         log.debug("cached %d items in %s", count, final)
         return final
 

@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from collections.abc import Hashable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -65,7 +64,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from datamodules.formats.mcap_file import atomic_target
+from datamodules.atomic import atomic_write
 from datamodules.recording import RecordingError
 
 log = logging.getLogger(__name__)
@@ -703,18 +702,10 @@ def read_track_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def write_smoothed_csv(path: Path, track: SmoothedTrack, overwrite: bool = True) -> Path:
     """Write ``timestamp,x,y,z,std_x,std_y,std_z`` atomically (temporary sibling, then rename)."""
     path = Path(path)
-    tmp = atomic_target(path, overwrite)
     frame = pd.DataFrame(np.column_stack([track.mean, track.std]), columns=list(SMOOTHED_COLUMNS[1:]))
     frame.insert(0, "timestamp", [repr(float(v)) for v in track.timestamps])
-    try:
-        with open(tmp, "w", newline="") as stream:
-            frame.to_csv(stream, index=False, float_format="%.6f", lineterminator="\n")
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_write(path, overwrite) as tmp, open(tmp, "w", newline="") as stream:
+        frame.to_csv(stream, index=False, float_format="%.6f", lineterminator="\n")
     return path
 
 

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from datamodules.atomic import atomic_write
 from zoo.metrics import TrajectoryError
 from zoo.registry import get_model
 
@@ -280,10 +281,8 @@ class TrajectoryTask(L.LightningModule):
                 name = names[index] if index < len(names) else f"sequence{index}"
                 frame = pd.DataFrame({"timestamp": sequence["time"], "x": sequence["position"][:, 0],
                                       "y": sequence["position"][:, 1], "z": sequence["position"][:, 2]})
-                path = out / f"{name}_{light}.csv"
-                tmp = path.with_name(f".{path.name}.tmp")
-                frame.to_csv(tmp, index=False, float_format="%.6f")
-                tmp.replace(path)
+                with atomic_write(out / f"{name}_{light}.csv") as tmp:
+                    frame.to_csv(tmp, index=False, float_format="%.6f")
         log.info("%s predictions written to %s", stage, out)
 
     def _store_predictions(self, topic: str) -> None:

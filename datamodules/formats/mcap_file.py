@@ -42,6 +42,7 @@ from mcap.writer import Writer as RawWriter
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer
 
+from datamodules.atomic import atomic_write
 from datamodules.formats.ros_messages import (
     MSGDEFS,
     SAMPLE_FORMATS,
@@ -78,15 +79,6 @@ AUDIO_CHUNK_SECONDS = 0.1  #: MMAUD-style 0.1 s audio messages aligned to the 10
 
 
 # ============================================================================================ writing
-
-
-def atomic_target(path: Path, overwrite: bool) -> Path:
-    """Check ``path`` may be written and return a temporary sibling to write first."""
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise FileExistsError(f"{path} already exists; refusing to overwrite it")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
 
 
 def _audio_format(audio: AudioStream, requested: str | None) -> str:
@@ -128,29 +120,21 @@ def write_mcap(
         chunk_size: MCAP chunk size in bytes (zstd-compressed per chunk).
     """
     path = Path(path)
-    tmp = atomic_target(path, overwrite)
-    try:
-        with open(tmp, "wb") as stream:
-            writer = Writer(stream, chunk_size=chunk_size)
-            schemas = {name: writer.register_msgdef(name, text) for name, text in MSGDEFS.items()}
-            _write_metadata(writer, recording, audio_format)
-            for topic, track in ((TOPIC_GROUND_TRUTH, recording.ground_truth),
-                                 (TOPIC_PSEUDO_LABEL, recording.pseudo_labels)):
-                if track is not None:
-                    _write_track(writer, schemas, topic, track)
-            if recording.audio is not None:
-                _write_audio(writer, schemas, recording.audio, _audio_format(recording.audio, audio_format))
-            for sensor, clouds in recording.lidar.items():
-                _write_clouds(writer, schemas, LIDAR_TOPICS[sensor], clouds, sensor)
-            if recording.frames is not None:
-                _write_images(writer, schemas, recording.frames)
-            writer.finish()
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_write(path, overwrite) as tmp, open(tmp, "wb") as stream:
+        writer = Writer(stream, chunk_size=chunk_size)
+        schemas = {name: writer.register_msgdef(name, text) for name, text in MSGDEFS.items()}
+        _write_metadata(writer, recording, audio_format)
+        for topic, track in ((TOPIC_GROUND_TRUTH, recording.ground_truth),
+                             (TOPIC_PSEUDO_LABEL, recording.pseudo_labels)):
+            if track is not None:
+                _write_track(writer, schemas, topic, track)
+        if recording.audio is not None:
+            _write_audio(writer, schemas, recording.audio, _audio_format(recording.audio, audio_format))
+        for sensor, clouds in recording.lidar.items():
+            _write_clouds(writer, schemas, LIDAR_TOPICS[sensor], clouds, sensor)
+        if recording.frames is not None:
+            _write_images(writer, schemas, recording.frames)
+        writer.finish()
     return path
 
 
@@ -263,23 +247,15 @@ def replace_track(path: str | Path, topic: str, track: Track | None) -> Path:
         _write_track(track_writer, schemas, topic, track)
         track_writer.finish()
         encoded.seek(0)
-    tmp = atomic_target(path, overwrite=True)
-    try:
-        with open(path, "rb") as source, open(tmp, "wb") as target:
-            writer = RawWriter(target)
-            writer.start(profile="ros2", library="aaute")
-            for name, meta in index.metadata.items():
-                writer.add_metadata(name, meta)
-            if track is not None:
-                _copy_messages(make_reader(encoded), writer, set())
-            _copy_messages(make_reader(source), writer, drop)
-            writer.finish()
-            target.flush()
-            os.fsync(target.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_write(path) as tmp, open(path, "rb") as source, open(tmp, "wb") as target:
+        writer = RawWriter(target)
+        writer.start(profile="ros2", library="aaute")
+        for name, meta in index.metadata.items():
+            writer.add_metadata(name, meta)
+        if track is not None:
+            _copy_messages(make_reader(encoded), writer, set())
+        _copy_messages(make_reader(source), writer, drop)
+        writer.finish()
     return path
 
 
