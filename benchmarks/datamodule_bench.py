@@ -26,8 +26,8 @@ def _peak_rss_mb() -> float:
 def window_times(data: Path, repeats: int) -> dict[str, float]:
     """Median milliseconds per 2 s window for each mel recipe (one thread)."""
     from datamodules.features import MEL_RECIPES, audio_window, mel_features
-    from datamodules.mmaud import discover
     from datamodules.formats import open_recording
+    from datamodules.mmaud import discover
 
     torch.set_num_threads(1)
     audio = open_recording(discover(data)[0]).audio

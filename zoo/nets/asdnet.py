@@ -57,9 +57,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from zoo.nets.audionet import check_inputs
 from zoo.nets.base import NUM_CLASSES, TrajectoryNet
-from zoo.nets.blocks import classification_loss
 from zoo.registry import register_model
 
 
@@ -266,7 +264,7 @@ class ASDNet(TrajectoryNet):
         self.classes = nn.Linear(100, num_classes)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        check_inputs(self, inputs)
+        self.check_inputs(inputs)
         visual = self.visual_frontend(inputs["image"]).transpose(1, 2)  # B x 512 x T
         visual = self.visual_conv1d(self.visual_tcn(visual)).transpose(1, 2)  # B x T x 128
         audio = self.audio_encoder(inputs["audio_mel"])  # B x T x 128
@@ -275,11 +273,3 @@ class ASDNet(TrajectoryNet):
         fused = self.self_av(src=fused, tar=fused)  # B x T x 256
         feature = self.fc(fused.flatten(1))
         return {"position": self.position(feature), "class_logits": self.classes(feature)}
-
-    def auxiliary_losses(
-        self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: torch.Tensor,
-        target_valid: torch.Tensor,
-    ) -> dict[str, torch.Tensor]:
-        if self.class_weight > 0 and "class_id" in batch:
-            return {"class": self.class_weight * classification_loss(outputs["class_logits"], batch["class_id"])}
-        return {}

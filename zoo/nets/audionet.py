@@ -34,20 +34,8 @@ from __future__ import annotations
 import torch
 
 from zoo.nets.base import NUM_CLASSES, TrajectoryNet
-from zoo.nets.blocks import DetectNet, FourBranchAudio, classification_loss
+from zoo.nets.blocks import DetectNet, FourBranchAudio
 from zoo.registry import register_model
-
-
-def check_inputs(net: TrajectoryNet, inputs: dict[str, torch.Tensor]) -> None:
-    """Raise a ValueError naming the input, recipe and shape when ``inputs`` do not fit ``net``."""
-    for name, shape in net.input_shapes().items():
-        if name not in inputs:
-            raise ValueError(f"{net.model_name} needs input {name!r} (recipe {net.inputs[name]!r}, "
-                             f"B x {' x '.join(map(str, shape))}); got keys {sorted(inputs)}")
-        got = tuple(inputs[name].shape)
-        if got[1:] != shape:
-            raise ValueError(f"{net.model_name} needs {name} of shape B x {' x '.join(map(str, shape))} "
-                             f"(recipe {net.inputs[name]!r}), got {got}")
 
 
 @register_model("audionet")
@@ -74,13 +62,5 @@ class AudioNet(TrajectoryNet):
         self.head = DetectNet(feature_dim, num_classes)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        check_inputs(self, inputs)
+        self.check_inputs(inputs)
         return self.head(self.encoder(inputs["audio_mel"]))
-
-    def auxiliary_losses(
-        self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: torch.Tensor,
-        target_valid: torch.Tensor,
-    ) -> dict[str, torch.Tensor]:
-        if self.class_weight > 0 and "class_id" in batch:
-            return {"class": self.class_weight * classification_loss(outputs["class_logits"], batch["class_id"])}
-        return {}

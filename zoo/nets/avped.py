@@ -29,7 +29,6 @@ from zoo.nets.blocks import (
     FourBranchAudio,
     VisibilityGate,
     VisualEncoder,
-    classification_loss,
     visibility_loss,
 )
 from zoo.registry import register_model
@@ -73,10 +72,8 @@ class AVPed(TrajectoryNet):
         self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: torch.Tensor,
         target_valid: torch.Tensor,
     ) -> dict[str, torch.Tensor]:
-        terms: dict[str, torch.Tensor] = {}
+        terms = super().auxiliary_losses(outputs, batch, target, target_valid)
         if self.visibility_weight > 0 and "visible" in batch:
             terms["visibility"] = self.visibility_weight * visibility_loss(outputs["visibility_logits"],
                                                                            batch["visible"])
-        if self.class_weight > 0 and "class_id" in batch:
-            terms["class"] = self.class_weight * classification_loss(outputs["class_logits"], batch["class_id"])
         return terms

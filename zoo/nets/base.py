@@ -6,7 +6,8 @@ dict with at least ``position`` (B x 3, metres); auxiliary heads add more keys. 
 declare what it consumes (input name -> recipe of :mod:`datamodules.features`), its category in
 the paper's table, and whether the position output is trained by regression (AV-FDTI decodes its
 position from a heat map and trains only its auxiliary losses). ``auxiliary_losses`` returns the
-net's own weighted loss terms given its outputs and the training targets.
+net's own weighted loss terms given its outputs and the training targets; by default that is
+``class_weight`` x the cross-entropy of a ``class_logits`` head, if the net has one.
 """
 
 from __future__ import annotations
@@ -29,9 +30,22 @@ class TrajectoryNet(nn.Module):
     category: ClassVar[str] = "supervised"  #: 'supervised' or 'self-supervised' (the paper's table)
     trains_position: ClassVar[bool] = True
 
-    def __init__(self, in_channels: int = 4):
+    def __init__(self, in_channels: int = 4, class_weight: float = 0.0):
         super().__init__()
         self.in_channels = in_channels
+        self.class_weight = class_weight
+
+    def check_inputs(self, inputs: dict[str, torch.Tensor]) -> None:
+        """Raise a ValueError naming the input, recipe and shape when ``inputs`` do not fit."""
+        for name, shape in self.input_shapes().items():
+            expected = " x ".join(map(str, shape))
+            if name not in inputs:
+                raise ValueError(f"{self.model_name} needs input {name!r} (recipe {self.inputs[name]!r}, "
+                                 f"B x {expected}); got keys {sorted(inputs)}")
+            got = tuple(inputs[name].shape)
+            if got[1:] != shape:
+                raise ValueError(f"{self.model_name} needs {name} of shape B x {expected} "
+                                 f"(recipe {self.inputs[name]!r}), got {got}")
 
     def input_shapes(self) -> dict[str, tuple[int, ...]]:
         """Per-sample shape of each input (without the batch axis), from the declared recipes."""
@@ -54,4 +68,8 @@ class TrajectoryNet(nn.Module):
         target_valid: torch.Tensor,
     ) -> dict[str, torch.Tensor]:
         """Weighted auxiliary loss terms (name -> scalar); ``target`` is the training position target."""
+        if self.class_weight > 0 and "class_logits" in outputs and "class_id" in batch:
+            from zoo.nets.blocks import classification_loss
+
+            return {"class": self.class_weight * classification_loss(outputs["class_logits"], batch["class_id"])}
         return {}

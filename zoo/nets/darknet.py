@@ -25,7 +25,6 @@ import torch
 from torch import nn
 
 from zoo.nets.base import NUM_CLASSES, TrajectoryNet
-from zoo.nets.blocks import classification_loss
 from zoo.registry import register_model
 
 STAGES = ((64, 1), (128, 2), (256, 8), (512, 8), (1024, 4))  #: (output channels, residual blocks) per stage
@@ -93,11 +92,3 @@ class DarkNet53(TrajectoryNet):
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         features = self.fc(self.backbone(inputs["image"]).mean(dim=(2, 3)))
         return {"position": self.position(features), "class_logits": self.classes(features)}
-
-    def auxiliary_losses(
-        self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: torch.Tensor,
-        target_valid: torch.Tensor,
-    ) -> dict[str, torch.Tensor]:
-        if self.class_weight <= 0 or "class_id" not in batch:
-            return {}
-        return {"class": self.class_weight * classification_loss(outputs["class_logits"], batch["class_id"])}

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 
 from zoo.nets.base import NUM_CLASSES, TrajectoryNet
-from zoo.nets.blocks import DetectNet, VisualEncoder, classification_loss
+from zoo.nets.blocks import DetectNet, VisualEncoder
 from zoo.registry import register_model
 
 
@@ -45,11 +45,3 @@ class VisualNet(TrajectoryNet):
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return self.head(self.encoder(inputs["image"]))
-
-    def auxiliary_losses(
-        self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: torch.Tensor,
-        target_valid: torch.Tensor,
-    ) -> dict[str, torch.Tensor]:
-        if self.class_weight <= 0 or "class_id" not in batch:
-            return {}
-        return {"class": self.class_weight * classification_loss(outputs["class_logits"], batch["class_id"])}

@@ -28,9 +28,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from zoo.nets.audionet import check_inputs
 from zoo.nets.base import NUM_CLASSES, TrajectoryNet
-from zoo.nets.blocks import classification_loss
 from zoo.registry import register_model
 
 
@@ -68,7 +66,7 @@ class VorasNet(TrajectoryNet):
         self.classes = nn.Linear(32, num_classes)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        check_inputs(self, inputs)
+        self.check_inputs(inputs)
         x = self.features(inputs["audio_mel"])  # B x 64 x 3 x 3
         steps = x.reshape(x.shape[0], x.shape[2], -1)  # the published view: B x H x (C * W) = B x 3 x 192
         if steps.shape[2] < self.hidden:
@@ -76,11 +74,3 @@ class VorasNet(TrajectoryNet):
         sequence, _ = self.lstm(steps[:, :, : self.hidden])
         feature = self.fc(sequence[:, -1])
         return {"position": self.position(feature), "class_logits": self.classes(feature)}
-
-    def auxiliary_losses(
-        self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: torch.Tensor,
-        target_valid: torch.Tensor,
-    ) -> dict[str, torch.Tensor]:
-        if self.class_weight > 0 and "class_id" in batch:
-            return {"class": self.class_weight * classification_loss(outputs["class_logits"], batch["class_id"])}
-        return {}
