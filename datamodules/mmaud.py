@@ -48,24 +48,26 @@ SPLITS = ("train", "val", "test")
 
 def discover(root: str | Path | list[str | Path]) -> list[Path]:
     """Every recording under ``root`` (files, folders or lists of them), in a stable order."""
-    from datamodules import formats
+    from datamodules.formats import discover_recordings
 
     roots = root if isinstance(root, list | tuple) else [root]
     found: list[Path] = []
     for entry in roots:
-        entry = Path(entry)
-        finder = getattr(formats, "discover_recordings", None)
-        if finder is not None:
-            found.extend(Path(p) for p in finder(entry))
-        elif entry.is_file():
-            found.append(entry)
-        elif entry.is_dir():
-            found.extend(sorted(entry.rglob("*.mcap")))
-        else:
-            raise RecordingError(f"{entry}: no such file or directory")
+        found.extend(Path(p) for p in discover_recordings(Path(entry)))
     if not found:
         raise RecordingError(f"no recordings found under {roots}")
     return sorted(dict.fromkeys(found))
+
+
+def _split_members(entry: str | list[str] | None) -> list[str]:
+    """Sequence ids of one split entry: a list of ids, or a list file of the derived layout."""
+    if entry is None:
+        return []
+    if isinstance(entry, str):
+        from datamodules.formats.derived_npy import read_sample_list
+
+        return sorted(read_sample_list(entry))
+    return list(entry)
 
 
 def _nearest(track: Track | None, times: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -126,7 +128,9 @@ class MMAUDDataModule(L.LightningDataModule):
     Args:
         root: recordings: files or folders (any readable layout), or a list of them.
         split: by sequence. Either explicit ``{"train": [ids], "val": [ids], "test": [ids]}`` (sequence
-            ids or file stems), or seeded ``{"seed": 0, "val": 0.2, "test": 0.2}``, stratified by drone.
+            ids or file stems; a value may instead be a list file of the derived layout, e.g.
+            ``train.txt``, whose sequences it names), or seeded ``{"seed": 0, "val": 0.2, "test": 0.2}``,
+            stratified by drone.
         window_seconds: audio seconds ending at the label time (causal).
         label_rate: samples per second (labels are thinned to this rate).
         inputs: what the model consumes: ``{"audio_mel": <mel recipe>, "image": <image recipe>}``.
@@ -142,6 +146,8 @@ class MMAUDDataModule(L.LightningDataModule):
         image_tolerance_s: the camera frame must lie this close to the label time.
         bev_bounds: [[x_min, x_max], [y_min, y_max]] (m) of the bird's-eye area that heat-map models
             (AV-FDTI) cover; the default is the MMAUD flight region the simulator flies in.
+        reader_options: passed to :func:`datamodules.formats.open_recording` for the layouts that take
+            them, e.g. ``{"sample_rate": 46080}`` for the derived npy layout of the AAUTE code.
     """
 
     def __init__(
@@ -162,6 +168,7 @@ class MMAUDDataModule(L.LightningDataModule):
         cache_dir: str | None = None,
         image_tolerance_s: float = 0.1,
         bev_bounds: list[list[float]] | None = None,
+        reader_options: dict[str, Any] | None = None,
     ):
         super().__init__()
         if bev_bounds is None:
@@ -209,7 +216,8 @@ class MMAUDDataModule(L.LightningDataModule):
         from datamodules.formats import open_recording
 
         paths = discover(self.hparams.root)
-        recordings = [(path, open_recording(path)) for path in paths]
+        options = dict(self.hparams.reader_options or {})
+        recordings = [(path, open_recording(path, **options)) for path in paths]
         ids = [rec.sequence_id for _, rec in recordings]
         if len(set(ids)) != len(ids):
             raise RecordingError(f"sequence ids are not unique under {self.hparams.root}")
@@ -236,10 +244,10 @@ class MMAUDDataModule(L.LightningDataModule):
         """Split name of each recording (None: not used)."""
         split = dict(self.hparams.split or {"seed": 0, "val": 0.2, "test": 0.2})
         names = [(rec.sequence_id, path.stem) for path, rec in recordings]
-        if any(isinstance(split.get(key), list | tuple) for key in SPLITS):
+        if any(isinstance(split.get(key), list | tuple | str) for key in SPLITS):
             lookup: dict[str, str] = {}
             for name in SPLITS:
-                for item in split.get(name) or []:
+                for item in _split_members(split.get(name)):
                     if item in lookup:
                         raise ValueError(f"sequence {item!r} is listed in both {lookup[item]!r} and {name!r}")
                     lookup[item] = name
@@ -330,6 +338,9 @@ class MMAUDDataModule(L.LightningDataModule):
                         image_index: np.ndarray) -> dict[str, str]:
         """Cache the model's inputs for every sample (entries that exist are reused)."""
         base = f"{path_fingerprint(path)}-{array_fingerprint(times)}"
+        if self.hparams.reader_options:
+            options = repr(sorted(self.hparams.reader_options.items())).encode()
+            base += f"-{zlib.crc32(options):08x}"
         keys: dict[str, str] = {}
         if self.audio_recipe is not None:
             recipe, audio = self.audio_recipe, recording.audio

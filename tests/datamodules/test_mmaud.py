@@ -123,3 +123,50 @@ def test_datamodule_from_yaml(simulated_dir, tmp_path):
     module.prepare_data()
     batch = next(iter(module.test_dataloader()[0]))
     assert tuple(batch["audio_mel"].shape[1:]) == (4, 13, 13)
+
+
+def test_derived_layout_with_list_file_splits_and_reader_options(tmp_path):
+    from tests.datamodules.test_format_derived_npy import CHUNK, make_derived
+
+    root = tmp_path / "Data-M"
+    truth = make_derived(root, {"0": 30, "3": 25, "7": 25}, images=False)
+    lists = root / "annotation"
+    lists.mkdir()
+    for name, seq in (("train", "0"), ("val", "3"), ("test", "7")):
+        (lists / f"{name}.txt").write_text("\n".join(f"{seq}/{i}.npy" for i in range(25)) + "\n")
+    split = {name: str(lists / f"{name}.txt") for name in ("train", "val", "test")}
+    modules = {}
+    for rate in (46080, 48000):
+        modules[rate] = _module(root, tmp_path, split=split, window_seconds=0.05, inputs={"audio_mel": "avfdti"},
+                                label_rate=200.0, reader_options={"sample_rate": rate})
+    module = modules[46080]
+    assert [s.sequence_id for s in module.sequences["train"]] == ["0"]
+    assert [s.sequence_id for s in module.sequences["test"]] == ["7"]
+    test = module.sequences["test"][0]
+    # labels sit at chunk ends, one chunk of CHUNK samples apart at the configured rate
+    assert np.allclose(np.diff(test.times), CHUNK / 46080)
+    assert np.allclose(np.diff(modules[48000].sequences["test"][0].times), CHUNK / 48000)
+    assert np.allclose(test.gt, truth["7"]["gt"][-test.gt.shape[0]:])
+    batch = next(iter(module.test_dataloader()[0]))
+    assert tuple(batch["audio_mel"].shape[1:]) == (4, 64, 64)
+    assert bool(batch["pseudo_valid"].all())
+    with pytest.raises(ValueError, match="listed in both"):
+        _module(root, tmp_path, split={"train": split["train"], "test": split["train"]},
+                inputs={"audio_mel": "avfdti"}, window_seconds=0.05)
+
+
+def test_ug2_folders_feed_an_image_model_and_refuse_an_audio_one(tmp_path, shared_data):
+    from tests.datamodules.test_format_ug2 import make_ug2_sequence
+
+    for k in range(3):
+        make_ug2_sequence(tmp_path / "ug2" / "train" / f"seq{k}", frames=12, seed=k)
+    module = _module(tmp_path / "ug2" / "train", tmp_path, inputs={"image": "resnet256"}, targets="ground_truth",
+                     split={"train": ["train_seq0"], "val": ["train_seq1"], "test": ["train_seq2"]})
+    samples = module.sequences["test"][0]
+    assert len(samples) == 12 and samples.gt_valid.all() and samples.drone == "m300"
+    batch = next(iter(module.test_dataloader()[0]))
+    assert tuple(batch["image"].shape[1:]) == (3, 256, 256)
+    real = shared_data / "mmaud_ug2_val_seq1"
+    if real.exists():  # LiDAR only: an audio model is refused by name, not fed silence
+        with pytest.raises(RecordingError, match="neither ground truth nor pseudo-labels|has none"):
+            _module(real, tmp_path, split={"test": ["mmaud_ug2_val_seq1"]})
