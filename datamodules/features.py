@@ -142,6 +142,19 @@ def _mel_transform(recipe: MelRecipe, sample_rate: float) -> torchaudio.transfor
     )
 
 
+def _power_mel(x: torch.Tensor, transform: torchaudio.transforms.MelSpectrogram) -> torch.Tensor:
+    """``transform(x)`` computed from the transform's own window and filterbank, about 2x faster.
+
+    torchaudio squares ``|X|`` through a complex ``abs`` (a square root, then a power); the power
+    is ``re^2 + im^2`` directly here. The result equals ``transform(x)`` to float32 rounding.
+    """
+    stft = transform.spectrogram
+    spec = torch.stft(x, stft.n_fft, stft.hop_length, stft.win_length, window=stft.window, center=stft.center,
+                      pad_mode=stft.pad_mode, normalized=False, onesided=stft.onesided, return_complex=True)
+    power = spec.real.square() + spec.imag.square()
+    return torch.matmul(power.transpose(-1, -2), transform.mel_scale.fb).transpose(-1, -2)
+
+
 def _minmax(spec: torch.Tensor) -> torch.Tensor:
     """Per-channel min-max to [0, 1] (a constant channel becomes 0)."""
     lo = spec.amin(dim=(-2, -1), keepdim=True)
@@ -151,11 +164,12 @@ def _minmax(spec: torch.Tensor) -> torch.Tensor:
 
 def mel_features(samples: np.ndarray, sample_rate: float, recipe: MelRecipe) -> torch.Tensor:
     """Apply ``recipe`` to raw audio (channels x samples) -> float32 C x H x W."""
-    x = torch.from_numpy(np.ascontiguousarray(samples, dtype=np.float32))
-    if not torch.isfinite(x).all():
+    samples = np.ascontiguousarray(samples, dtype=np.float32)
+    if not np.isfinite(samples).all():
         raise RecordingError("audio window holds NaN or infinite samples")
+    x = torch.from_numpy(samples)
     with torch.no_grad():
-        spec = _minmax(_mel_transform(recipe, float(sample_rate))(x))
+        spec = _minmax(_power_mel(x, _mel_transform(recipe, float(sample_rate))))
         out = resize(spec, list(recipe.resize), interpolation=InterpolationMode.BILINEAR, antialias=True)
         if recipe.keep_rows is not None:
             out = out[:, : recipe.keep_rows]

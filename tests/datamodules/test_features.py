@@ -77,6 +77,26 @@ def test_window_ends_at_the_label_time_and_faithful_order_is_newest_first():
         audio_window(audio, 50.5, recipe, 2.0)
 
 
+@pytest.mark.parametrize("name", sorted(MEL_RECIPES))
+def test_features_equal_torchaudios_mel_spectrogram(name):
+    """The fast power path is torchaudio's MelSpectrogram, to float32 rounding."""
+    recipe = mel_recipe(name)
+    x = np.random.default_rng(3).normal(0, 0.1, (4, 2 * FS)).astype(np.float32)
+    reference = torchaudio.transforms.MelSpectrogram(
+        sample_rate=int(recipe.mel_sample_rate or FS), n_fft=recipe.n_fft, hop_length=recipe.hop, f_min=recipe.f_min,
+        f_max=recipe.f_max, n_mels=recipe.n_mels, power=2.0, norm="slaney", mel_scale="slaney", pad_mode="constant")
+    spec = reference(torch.from_numpy(x))
+    lo, hi = spec.amin(dim=(-2, -1), keepdim=True), spec.amax(dim=(-2, -1), keepdim=True)
+    expected = torch.nn.functional.interpolate(((spec - lo) / (hi - lo))[None], size=recipe.resize,
+                                               mode="bilinear", antialias=True, align_corners=False)[0]
+    if recipe.keep_rows is not None:
+        expected = expected[:, :recipe.keep_rows]
+    if recipe.final_resize is not None:
+        expected = torch.nn.functional.interpolate(expected[None], size=recipe.final_resize, mode="bilinear",
+                                                   antialias=True, align_corners=False)[0]
+    assert torch.allclose(mel_features(x, FS, recipe), expected, atol=1e-5)
+
+
 def test_nan_audio_is_refused():
     x = np.zeros((4, FS), dtype=np.float32)
     x[2, 100] = np.nan
