@@ -227,7 +227,8 @@ class MMAUDDataModule(L.LightningDataModule):
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # one small window at a time: threads only contend
         try:
-            for (path, recording), split_name in zip(recordings, assignment, strict=True):
+            for split_name in assignment:
+                path, recording = recordings.pop(0)  # released when done: readers cache chunks
                 if split_name is None:
                     continue
                 samples = self._samples(path, recording)
