@@ -5,7 +5,8 @@ Recipes follow the published preprocessing of each model family:
 - ``aaute`` (recipe B, the AAUTE student and the original AV-PedAware): torchaudio mel spectrogram
   with n_fft 2048, hop 1024, 200 Slaney mels over 0..sr/2, power 2 (no log), per-channel
   min-max to [0, 1], bilinear resize to 224 x 64 (mel x time), keep the first 64 mel rows
-  (about 0-1.2 kHz) -> C x 64 x 64.
+  (about 0-1.2 kHz) -> C x 64 x 64. ``aaute_joint`` is the same with one min-max over all channels,
+  which keeps the level differences between microphones (not in the paper; a measured variant).
 - ``avfdti`` (recipe A, AV-FDTI and every comparison baseline): hop 512, 20 Slaney mels from 1 to
   8 kHz with the sample rate passed as 48 kHz, per-channel min-max, resize to 64 x 64;
   ``avfdti_224`` (VorasNet) and ``avfdti_13`` (ASDNet) resize that 64 x 64 map again.
@@ -53,6 +54,7 @@ class MelRecipe:
     mel_sample_rate: float | None = None  #: the rate passed to the mel transform (None: the audio's)
     chunk_seconds: float = 0.1  #: faithful order: one original audio file
     chunk_offsets: tuple[int, ...] = (0,)  #: faithful order: files used, newest first
+    joint_minmax: bool = False  #: one min-max over all channels instead of one per channel
 
     @property
     def output_shape(self) -> tuple[int, int]:
@@ -78,11 +80,13 @@ class ImageRecipe:
 
 _RECIPE_A = dict(n_fft=2048, hop=512, n_mels=20, f_min=1000.0, f_max=8000.0, resize=(64, 64),
                  mel_sample_rate=48000.0, chunk_offsets=tuple(-k for k in range(10)))
+_RECIPE_B = dict(n_fft=2048, hop=1024, n_mels=200, f_min=0.0, f_max=None, resize=(224, 64), keep_rows=64,
+                 chunk_offsets=(0, -2, -4, -6, -8))
 MEL_RECIPES: dict[str, MelRecipe] = {
     r.name: r
     for r in (
-        MelRecipe("aaute", n_fft=2048, hop=1024, n_mels=200, f_min=0.0, f_max=None, resize=(224, 64), keep_rows=64,
-                  chunk_offsets=(0, -2, -4, -6, -8)),
+        MelRecipe("aaute", **_RECIPE_B),
+        MelRecipe("aaute_joint", joint_minmax=True, **_RECIPE_B),
         MelRecipe("avfdti", **_RECIPE_A),
         MelRecipe("avfdti_224", final_resize=(224, 224), **_RECIPE_A),
         MelRecipe("avfdti_13", final_resize=(13, 13), **_RECIPE_A),
@@ -155,10 +159,11 @@ def _power_mel(x: torch.Tensor, transform: torchaudio.transforms.MelSpectrogram)
     return torch.matmul(power.transpose(-1, -2), transform.mel_scale.fb).transpose(-1, -2)
 
 
-def _minmax(spec: torch.Tensor) -> torch.Tensor:
-    """Per-channel min-max to [0, 1] (a constant channel becomes 0)."""
-    lo = spec.amin(dim=(-2, -1), keepdim=True)
-    hi = spec.amax(dim=(-2, -1), keepdim=True)
+def _minmax(spec: torch.Tensor, joint: bool = False) -> torch.Tensor:
+    """Min-max to [0, 1] per channel, or over all channels with ``joint`` (a constant map becomes 0)."""
+    dims = (-3, -2, -1) if joint else (-2, -1)
+    lo = spec.amin(dim=dims, keepdim=True)
+    hi = spec.amax(dim=dims, keepdim=True)
     return (spec - lo) / torch.clamp(hi - lo, min=torch.finfo(spec.dtype).tiny)
 
 
@@ -169,7 +174,7 @@ def mel_features(samples: np.ndarray, sample_rate: float, recipe: MelRecipe) -> 
         raise RecordingError("audio window holds NaN or infinite samples")
     x = torch.from_numpy(samples)
     with torch.no_grad():
-        spec = _minmax(_power_mel(x, _mel_transform(recipe, float(sample_rate))))
+        spec = _minmax(_power_mel(x, _mel_transform(recipe, float(sample_rate))), recipe.joint_minmax)
         out = resize(spec, list(recipe.resize), interpolation=InterpolationMode.BILINEAR, antialias=True)
         if recipe.keep_rows is not None:
             out = out[:, : recipe.keep_rows]

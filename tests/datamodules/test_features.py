@@ -29,7 +29,8 @@ def test_every_recipe_has_its_shape_and_range(name):
     out = mel_features(x, FS, recipe)
     assert tuple(out.shape) == (4, *recipe.output_shape)
     assert out.dtype == torch.float32 and float(out.min()) >= 0.0 and float(out.max()) <= 1.0 + 1e-6
-    expected = {"aaute": (64, 64), "avfdti": (64, 64), "avfdti_224": (224, 224), "avfdti_13": (13, 13)}[name]
+    expected = {"aaute": (64, 64), "aaute_joint": (64, 64), "avfdti": (64, 64), "avfdti_224": (224, 224),
+                "avfdti_13": (13, 13)}[name]
     assert recipe.output_shape == expected
 
 
@@ -86,7 +87,8 @@ def test_features_equal_torchaudios_mel_spectrogram(name):
         sample_rate=int(recipe.mel_sample_rate or FS), n_fft=recipe.n_fft, hop_length=recipe.hop, f_min=recipe.f_min,
         f_max=recipe.f_max, n_mels=recipe.n_mels, power=2.0, norm="slaney", mel_scale="slaney", pad_mode="constant")
     spec = reference(torch.from_numpy(x))
-    lo, hi = spec.amin(dim=(-2, -1), keepdim=True), spec.amax(dim=(-2, -1), keepdim=True)
+    dims = (-3, -2, -1) if recipe.joint_minmax else (-2, -1)
+    lo, hi = spec.amin(dim=dims, keepdim=True), spec.amax(dim=dims, keepdim=True)
     expected = torch.nn.functional.interpolate(((spec - lo) / (hi - lo))[None], size=recipe.resize,
                                                mode="bilinear", antialias=True, align_corners=False)[0]
     if recipe.keep_rows is not None:
@@ -95,6 +97,16 @@ def test_features_equal_torchaudios_mel_spectrogram(name):
         expected = torch.nn.functional.interpolate(expected[None], size=recipe.final_resize, mode="bilinear",
                                                    antialias=True, align_corners=False)[0]
     assert torch.allclose(mel_features(x, FS, recipe), expected, atol=1e-5)
+
+
+def test_joint_variant_keeps_the_level_differences_between_microphones():
+    t = np.arange(2 * FS) / FS
+    tone = np.sin(2 * np.pi * 400.0 * t).astype(np.float32)
+    x = np.stack([tone, 0.5 * tone, tone, tone])  # microphone 1 is 6 dB quieter
+    per_channel = mel_features(x, FS, mel_recipe("aaute"))
+    joint = mel_features(x, FS, mel_recipe("aaute_joint"))
+    assert torch.allclose(per_channel[0], per_channel[1], atol=1e-4)
+    assert joint[1].amax() / joint[0].amax() == pytest.approx(0.25, rel=0.02)  # power ratio
 
 
 def test_nan_audio_is_refused():
