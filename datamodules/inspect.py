@@ -8,18 +8,16 @@ from typing import Any
 import numpy as np
 
 from datamodules.formats import detect_layout, open_recording
+from datamodules.recording import count_gaps
 
 
 def _rate(timestamps: np.ndarray) -> float:
     return float(1.0 / np.median(np.diff(timestamps))) if len(timestamps) > 1 else float("nan")
 
 
-def _gaps(timestamps: np.ndarray, factor: float = 2.0) -> int:
-    """Number of steps longer than ``factor`` times the median step."""
-    if len(timestamps) < 3:
-        return 0
-    steps = np.diff(timestamps)
-    return int(np.count_nonzero(steps > factor * np.median(steps)))
+def _gaps(timestamps: np.ndarray) -> int:
+    """Gaps as ``aaute info`` reports them: steps over twice the median step."""
+    return count_gaps(timestamps, factor=2.0)
 
 
 def _format(path: Path, source: str | None) -> str:
@@ -56,8 +54,9 @@ def describe(path: Path, sample_frames: int = 5, **options: Any) -> dict[str, An
             continue
         picks = np.linspace(0, len(clouds) - 1, min(sample_frames, len(clouds))).astype(int)
         mean_points = float(np.mean([len(clouds[int(i)]) for i in picks]))
+        gaps = _gaps(clouds.timestamps)
         row[sensor] = (f"{len(clouds)} @{_rate(clouds.timestamps):.1f}Hz ~{mean_points:.0f}pts"
-                       f"{'' if not _gaps(clouds.timestamps) else f' gaps:{_gaps(clouds.timestamps)}'}")
+                       + (f" gaps:{gaps}" if gaps else ""))
     frames = recording.frames
     row["camera"] = f"{len(frames)} @{_rate(frames.timestamps):.1f}Hz" if frames is not None and len(frames) else "-"
     for name, track in (("ground_truth", recording.ground_truth), ("pseudo_label", recording.pseudo_labels)):

@@ -81,6 +81,18 @@ def check_monotonic(timestamps: np.ndarray, what: str, strict: bool = True) -> N
         )
 
 
+#: a step longer than this many median steps counts as a gap (missing frames)
+GAP_FACTOR = 1.5
+
+
+def count_gaps(timestamps: np.ndarray, factor: float = GAP_FACTOR) -> int:
+    """Number of steps longer than ``factor`` times the median step (missing frames)."""
+    if len(timestamps) < 3:
+        return 0
+    steps = np.diff(timestamps)
+    return int(np.count_nonzero(steps > factor * np.median(steps)))
+
+
 # --------------------------------------------------------------------------------------------- audio
 
 

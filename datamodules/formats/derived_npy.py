@@ -39,13 +39,14 @@ from typing import Any
 
 import numpy as np
 
-from datamodules.formats.ug2 import FileImages, count_gaps
+from datamodules.formats.ug2 import FileImages
 from datamodules.recording import (
     DRONE_TYPES,
     AudioStream,
     Recording,
     RecordingError,
     Track,
+    count_gaps,
     json_safe,
     ns_to_seconds,
     seconds_to_ns,
@@ -508,8 +509,9 @@ def read_derived_npy(
             stamps = label_times(offset, np.asarray(inside), duration)
             frames = FileImages(image_folder, stamps, [images[i].name for i in inside])
             meta["folders"]["frames"] = image_folder.parent.name
-            if count_gaps(stamps):
-                log.warning("%s: %d gap(s) in the images", image_folder, count_gaps(stamps))
+            gaps = count_gaps(stamps)
+            if gaps:
+                log.warning("%s: %d gap(s) in the images", image_folder, gaps)
 
     detection = pick(DETECTION_FOLDERS, values=None)
     if detection is not None:

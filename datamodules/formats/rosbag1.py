@@ -57,7 +57,6 @@ from typing import Any
 import numpy as np
 
 from datamodules.formats.ros_messages import SAMPLE_FORMATS, pointcloud_to_arrays, stamp_ns
-from datamodules.formats.ug2 import count_gaps
 from datamodules.recording import (
     DRONE_TYPES,
     AudioStream,
@@ -69,6 +68,7 @@ from datamodules.recording import (
     RecordingError,
     Track,
     check_monotonic,
+    count_gaps,
     json_safe,
     ns_to_seconds,
 )

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 
 from datamodules.recording import (
+    GAP_FACTOR,
     EncodedImage,
     ImageStream,
     PointCloud,
@@ -38,6 +39,7 @@ from datamodules.recording import (
     RecordingError,
     Track,
     check_monotonic,
+    count_gaps,
     json_safe,
 )
 
@@ -63,10 +65,6 @@ FRAME_DESCRIPTION = (
     "the roof is at about z = -1.3 m); Avia points, ground truth and the published tracker "
     "output are in the same frame. No transform applied."
 )
-
-#: a step longer than this many median steps counts as a gap (missing frames)
-GAP_FACTOR = 1.5
-
 
 def is_ug2_sequence(path: Path) -> bool:
     """Whether ``path`` is a folder holding UG2 sensor sub-folders."""
@@ -99,14 +97,6 @@ def list_stamped_files(folder: Path, suffixes: Sequence[str]) -> tuple[np.ndarra
     names = [files[i].name for i in order]
     check_monotonic(stamps, str(folder))
     return stamps, names
-
-
-def count_gaps(timestamps: np.ndarray, factor: float = GAP_FACTOR) -> int:
-    """Number of steps longer than ``factor`` times the median step (missing frames)."""
-    if len(timestamps) < 3:
-        return 0
-    steps = np.diff(timestamps)
-    return int(np.count_nonzero(steps > factor * np.median(steps)))
 
 
 def _load_npy(path: Path) -> np.ndarray:
