@@ -3,23 +3,21 @@
 Used by ``aaute label``. Each recording is one job (one process with ``workers > 1``); a failing
 recording is reported and leaves its file untouched, the others go on. Tracks are stored beside
 the sensor data atomically: MCAP recordings get their ``/pseudo_label`` topic replaced
-(:func:`~datamodules.formats.mcap_file.replace_track`); another layout is written by its reader
-module's ``write_pseudo_labels(path, track) -> Path`` if it has one, and is otherwise refused
-with a pointer to ``aaute convert``.
+(:func:`~datamodules.formats.mcap_file.replace_track`); other layouts are refused with a pointer
+to ``aaute convert``.
 """
 
 from __future__ import annotations
 
-import importlib
 import logging
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from datamodules.formats import discover_recordings, open_recording
+from datamodules.formats import discover_all, open_recording
 from datamodules.recording import Recording, RecordingError, Track
 from datamodules.teacher import TeacherConfig, TeacherScore, run_teacher, score_recording
 
@@ -56,32 +54,16 @@ class LabelOutcome:
         return row
 
 
-def find_recordings(paths: Iterable[str | Path]) -> list[Path]:
-    """Every recording at or under ``paths`` (files or folders of any layout), in order, once each."""
-    found: list[Path] = []
-    for path in paths:
-        found.extend(discover_recordings(Path(path)))
-    return list(dict.fromkeys(found))
-
-
 def write_pseudo_labels(path: Path, recording: Recording, track: Track) -> Path:
-    """Store ``track`` beside the recording at ``path`` atomically, in the recording's own layout."""
+    """Store ``track`` in the MCAP recording at ``path`` atomically; other layouts are refused."""
     path = Path(path)
-    if path.is_file() and path.suffix == ".mcap":
-        from datamodules.formats.mcap_file import TOPIC_PSEUDO_LABEL, replace_track
-
-        return replace_track(path, TOPIC_PSEUDO_LABEL, track)
-    layout = str(recording.meta.get("source_format") or "unknown")
-    writer: Callable[[Path, Track], Path] | None = None
-    if layout.isidentifier():
-        try:
-            writer = getattr(importlib.import_module(f"datamodules.formats.{layout}"), "write_pseudo_labels", None)
-        except ImportError:
-            writer = None
-    if writer is None:
+    if not (path.is_file() and path.suffix == ".mcap"):
+        layout = recording.meta.get("source_format") or "unknown"
         raise RecordingError(f"{path}: writing pseudo-labels into {layout} recordings is not supported yet; "
                              f"convert to MCAP with 'aaute convert' and label the MCAP file")
-    return writer(path, track)
+    from datamodules.formats.mcap_file import TOPIC_PSEUDO_LABEL, replace_track
+
+    return replace_track(path, TOPIC_PSEUDO_LABEL, track)
 
 
 def has_pseudo_labels(recording: Recording) -> bool:
@@ -133,7 +115,7 @@ def label_paths(paths: Sequence[str | Path], config: TeacherConfig | None = None
     """
     from tqdm import tqdm
 
-    recordings = find_recordings(paths)
+    recordings = discover_all(paths)
     config = config or TeacherConfig()
     options = dict(write=write, evaluate=evaluate, skip_existing=skip_existing, max_range_m=max_range_m,
                    reader_options=reader_options)

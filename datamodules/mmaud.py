@@ -48,15 +48,13 @@ SPLITS = ("train", "val", "test")
 
 def discover(root: str | Path | list[str | Path]) -> list[Path]:
     """Every recording under ``root`` (files, folders or lists of them), in a stable order."""
-    from datamodules.formats import discover_recordings
+    from datamodules.formats import discover_all
 
     roots = root if isinstance(root, list | tuple) else [root]
-    found: list[Path] = []
-    for entry in roots:
-        found.extend(Path(p) for p in discover_recordings(Path(entry)))
+    found = discover_all(roots)
     if not found:
         raise RecordingError(f"no recordings found under {roots}")
-    return sorted(dict.fromkeys(found))
+    return sorted(found)
 
 
 def _split_members(entry: str | list[str] | None) -> list[str]:

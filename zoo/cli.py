@@ -51,11 +51,11 @@ def _add_reader_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    from datamodules.formats import discover_recordings
+    from datamodules.formats import discover_all
     from datamodules.inspect import describe, format_table
 
     options = _reader_options(args)
-    paths = [found for p in args.paths for found in discover_recordings(Path(p))]
+    paths = discover_all(args.paths)
     rows = [describe(path, **options) for path in paths]
     sys.stdout.write(format_table(rows) + "\n")
     return 0

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -109,6 +110,12 @@ def open_recording(path: str | Path, **options: Any) -> Recording:
     from datamodules.formats.rosbag1 import open_rosbag1
 
     return open_rosbag1(path, **accepted)
+
+
+def discover_all(roots: Iterable[str | Path]) -> list[Path]:
+    """Every recording at or under each of ``roots`` (:func:`discover_recordings`), in order, once each."""
+    found = [path for root in roots for path in discover_recordings(root)]
+    return list(dict.fromkeys(found))
 
 
 def discover_recordings(root: str | Path) -> list[Path]:
