@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from datamodules.formats.ug2 import FileImages
+from datamodules.formats.ug2 import FileImages, load_npy
 from datamodules.recording import (
     DRONE_TYPES,
     AudioStream,
@@ -325,10 +325,7 @@ def label_times(offset: float, indices: np.ndarray, duration: float) -> np.ndarr
 
 
 def _values(path: Path) -> np.ndarray:
-    try:
-        return np.asarray(np.load(path, allow_pickle=False), dtype=np.float64).reshape(-1)
-    except (OSError, ValueError, EOFError) as error:
-        raise RecordingError(f"{path}: not a readable .npy array ({error})") from error
+    return np.asarray(load_npy(path), dtype=np.float64).reshape(-1)
 
 
 def _sample_files(folder: Path) -> dict[int, Path]:

@@ -99,7 +99,8 @@ def list_stamped_files(folder: Path, suffixes: Sequence[str]) -> tuple[np.ndarra
     return stamps, names
 
 
-def _load_npy(path: Path) -> np.ndarray:
+def load_npy(path: Path) -> np.ndarray:
+    """An .npy array, or a :class:`RecordingError` naming the file."""
     try:
         return np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError) as error:
@@ -126,7 +127,7 @@ class NpyPointClouds(PointCloudStream):
 
     def __getitem__(self, index: int) -> PointCloud:
         path = self.folder / self._names[index]
-        return points_without_padding(_load_npy(path), str(path))
+        return points_without_padding(load_npy(path), str(path))
 
 
 class FileImages(ImageStream):
@@ -162,7 +163,7 @@ def read_position_files(folder: Path, stamps: np.ndarray, names: Sequence[str]) 
     """A track from one (3,) position file per time; non-finite positions become invalid points."""
     xyz = np.full((len(names), 3), np.nan)
     for i, name in enumerate(names):
-        value = np.asarray(_load_npy(folder / name), dtype=np.float64)
+        value = np.asarray(load_npy(folder / name), dtype=np.float64)
         if value.size != 3:
             raise RecordingError(f"{folder / name}: expected 3 values (x, y, z), got shape {value.shape}")
         xyz[i] = value.reshape(3)
@@ -187,7 +188,7 @@ def _read_class(folder: Path) -> int | None:
     _, names = list_stamped_files(folder, (".npy",))
     if not names:
         return None
-    counts = Counter(class_id(_load_npy(folder / n), str(folder / n)) for n in names)
+    counts = Counter(class_id(load_npy(folder / n), str(folder / n)) for n in names)
     best, count = counts.most_common(1)[0]
     if len(counts) > 1:
         log.warning("%s: class ids differ between frames (%s); using the majority %d (%d of %d frames)",

@@ -104,8 +104,8 @@ def test_real_sequence_converts_to_identical_mcap(real_seq, tmp_path):
 
 def test_frames_are_read_on_access(real_seq, monkeypatch):
     loads = []
-    original = ug2._load_npy
-    monkeypatch.setattr(ug2, "_load_npy", lambda path: loads.append(path) or original(path))
+    original = ug2.load_npy
+    monkeypatch.setattr(ug2, "load_npy", lambda path: loads.append(path) or original(path))
     rec = open_recording(real_seq)
     assert loads == []
     rec.lidar["avia"][5]
