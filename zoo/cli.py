@@ -113,10 +113,10 @@ def _cmd_smooth(args: argparse.Namespace) -> int:
     options = {"preset": args.preset, "backend": args.backend, "fit": args.fit}
     if args.horizon is not None:
         options["horizon"] = args.horizon
-    track = smooth_track_file(args.src, args.dst, **options)
+    track = smooth_track_file(args.src, args.dst, **options)  # logs what it smoothed
     beyond = int(track.beyond_horizon.sum())
-    log.info("%d points smoothed with the %s backend%s", len(track), track.backend,
-             f"; {beyond} lie beyond the {track.horizon:g} s horizon" if beyond else "")
+    if beyond:
+        log.info("%d of %d points lie beyond the %g s horizon", beyond, len(track), track.horizon)
     return 0
 
 
