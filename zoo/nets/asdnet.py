@@ -249,8 +249,7 @@ class ASDNet(TrajectoryNet):
 
     def __init__(self, in_channels: int = 4, dropout: float = 0.1, num_classes: int = NUM_CLASSES,
                  class_weight: float = 0.1, batch_mixing: bool = False):
-        super().__init__(in_channels)
-        self.class_weight = class_weight
+        super().__init__(in_channels, class_weight)
         self.visual_frontend = VisualFrontend(batch_mixing)
         self.visual_tcn = nn.Sequential(*(DSConv1d(512) for _ in range(5)))
         self.visual_conv1d = nn.Sequential(nn.Conv1d(512, 256, 5, padding=2), nn.BatchNorm1d(256), nn.ReLU(),

@@ -56,8 +56,7 @@ class AudioNet(TrajectoryNet):
 
     def __init__(self, in_channels: int = 4, kernels: int = 16, feature_dim: int = 256, dropout: float = 0.3,
                  num_classes: int = NUM_CLASSES, class_weight: float = 0.1):
-        super().__init__(in_channels)
-        self.class_weight = class_weight
+        super().__init__(in_channels, class_weight)
         self.encoder = FourBranchAudio(in_channels, kernels, feature_dim, dropout)
         self.head = DetectNet(feature_dim, num_classes)
 

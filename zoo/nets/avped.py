@@ -56,9 +56,8 @@ class AVPed(TrajectoryNet):
     def __init__(self, in_channels: int = 4, kernels: int = 16, feature_dim: int = 256, dropout: float = 0.3,
                  resnet_weights: str | None = None, gate_hidden: tuple[int, ...] = (128,),
                  num_classes: int = NUM_CLASSES, visibility_weight: float = 0.5, class_weight: float = 0.1):
-        super().__init__(in_channels)
+        super().__init__(in_channels, class_weight)
         self.visibility_weight = visibility_weight
-        self.class_weight = class_weight
         self.audio = FourBranchAudio(in_channels, kernels, feature_dim, dropout)
         self.visual = VisualEncoder(feature_dim, resnet_weights)
         self.gate = VisibilityGate(feature_dim, tuple(gate_hidden))

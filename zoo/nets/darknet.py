@@ -71,8 +71,7 @@ class DarkNet53(TrajectoryNet):
     category = "supervised"
 
     def __init__(self, faithful_residual: bool = True, num_classes: int = NUM_CLASSES, class_weight: float = 0.1):
-        super().__init__()
-        self.class_weight = class_weight
+        super().__init__(class_weight=class_weight)
         layers: list[nn.Module] = [ConvBN(3, 32, 3)]
         channels = 32
         for out_channels, blocks in STAGES:

@@ -38,8 +38,7 @@ class VisualNet(TrajectoryNet):
 
     def __init__(self, feature_dim: int = 256, resnet_weights: str | None = None, num_classes: int = NUM_CLASSES,
                  class_weight: float = 0.1):
-        super().__init__()
-        self.class_weight = class_weight
+        super().__init__(class_weight=class_weight)
         self.encoder = VisualEncoder(feature_dim, resnet_weights)
         self.head = DetectNet(feature_dim, num_classes)
 

@@ -55,9 +55,8 @@ class VorasNet(TrajectoryNet):
 
     def __init__(self, in_channels: int = 4, channels: int = 64, hidden: int = 128, num_classes: int = NUM_CLASSES,
                  class_weight: float = 0.1):
-        super().__init__(in_channels)
+        super().__init__(in_channels, class_weight)
         self.hidden = hidden
-        self.class_weight = class_weight
         self.features = nn.Sequential(conv_block(in_channels, channels), conv_block(channels, channels),
                                       conv_block(channels, channels))
         self.lstm = nn.LSTM(hidden, hidden, num_layers=1, batch_first=True)
