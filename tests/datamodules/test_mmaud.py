@@ -155,7 +155,8 @@ def test_derived_layout_with_list_file_splits_and_reader_options(tmp_path):
                 inputs={"audio_mel": "avfdti"}, window_seconds=0.05)
 
 
-def test_ug2_folders_feed_an_image_model_and_refuse_an_audio_one(tmp_path, shared_data):
+def test_ug2_folders_feed_an_image_model_and_refuse_an_audio_one(tmp_path):
+    from tests.conftest import shared_data_dir
     from tests.datamodules.test_format_ug2 import make_ug2_sequence
 
     for k in range(3):
@@ -166,7 +167,7 @@ def test_ug2_folders_feed_an_image_model_and_refuse_an_audio_one(tmp_path, share
     assert len(samples) == 12 and samples.gt_valid.all() and samples.drone == "m300"
     batch = next(iter(module.test_dataloader()[0]))
     assert tuple(batch["image"].shape[1:]) == (3, 256, 256)
-    real = shared_data / "mmaud_ug2_val_seq1"
+    real = shared_data_dir() / "mmaud_ug2_val_seq1"
     if real.exists():  # LiDAR only: an audio model is refused by name, not fed silence
         with pytest.raises(RecordingError, match="neither ground truth nor pseudo-labels|has none"):
             _module(real, tmp_path, split={"test": ["mmaud_ug2_val_seq1"]})
