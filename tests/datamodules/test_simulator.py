@@ -77,3 +77,14 @@ def test_simulate_command_resumes_and_refuses_a_different_recording(tmp_path, ca
     assert main([*common, "--seconds", "2.0"]) == 2  # other settings, same folder
     assert [f.stat().st_mtime_ns for f in files] == stamps
     assert not list(out.glob(".*tmp*"))
+
+
+def test_simulate_command_sets_the_ambient(tmp_path):
+    out = tmp_path / "quiet"
+    args = ["simulate", "--out", str(out), "--sequences", "1", "--seconds", "1.0", "--no-camera",
+            "--ambient-dba", "45", "45", "--wind", "0", "0", "--no-hvac"]
+    assert main(args) == 0
+    audio = open_recording(next(out.glob("*.mcap"))).meta["audio"]
+    assert audio["ambient_dba"] == 45.0 and audio["wind_speed"] == 0.0 and audio["hvac_dba"] is None
+    assert main(["simulate", "--out", str(tmp_path / "bad"), "--wind", "3", "1"]) == 2
+    assert not (tmp_path / "bad").exists()
