@@ -21,10 +21,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from datamodules.simulate.ambient import AmbientConfig
     from datamodules.simulate.simulator import SimulationConfig, simulate_dataset
 
-    for name, (lo, hi) in (("--ambient-dba", args.ambient_dba), ("--wind", args.wind)):
+    ranges = {"level_dba": args.ambient_dba, "wind_speed": args.wind}
+    for flag, (lo, hi) in (("--ambient-dba", args.ambient_dba or (0, 0)), ("--wind", args.wind or (0, 0))):
         if not 0 <= lo <= hi:
-            raise ValueError(f"{name} needs 0 <= LOW <= HIGH, got {lo:g} {hi:g}")
-    ambient = AmbientConfig(level_dba=tuple(args.ambient_dba), hvac=not args.no_hvac, wind_speed=tuple(args.wind))
+            raise ValueError(f"{flag} needs 0 <= LOW <= HIGH, got {lo:g} {hi:g}")
+    ambient = AmbientConfig(hvac=not args.no_hvac, **{k: tuple(v) for k, v in ranges.items() if v is not None})
     config = SimulationConfig(
         duration=args.seconds,
         drone=args.drone,
@@ -143,10 +144,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--sample-rate", type=float, default=48000.0, help="48000 (default) or 46080")
     sim.add_argument("--microphones", default="distributed4", help="distributed4 | respeaker4 | respeaker6")
     sim.add_argument("--ground", default="concrete", help="concrete | asphalt | grass | none")
-    sim.add_argument("--ambient-dba", type=float, nargs=2, default=[45.0, 62.0], metavar=("LOW", "HIGH"),
-                     help="diffuse ambient level, dB(A), drawn per recording (default 45 62)")
-    sim.add_argument("--wind", type=float, nargs=2, default=[0.0, 4.0], metavar=("LOW", "HIGH"),
-                     help="wind speed at the microphones, m/s, drawn per recording (default 0 4; 0 0: none)")
+    sim.add_argument("--ambient-dba", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                     help="range of the diffuse ambient level, dB(A), drawn per recording (default 45 62)")
+    sim.add_argument("--wind", type=float, nargs=2, metavar=("LOW", "HIGH"),
+                     help="range of the wind speed, m/s, drawn per recording (default 0 4; 0 0: no wind)")
     sim.add_argument("--no-hvac", action="store_true", help="no rooftop HVAC unit")
     sim.add_argument("--no-camera", action="store_true")
     sim.add_argument("--workers", type=int, default=1, help="parallel processes")
