@@ -100,12 +100,7 @@ class TrajectoryTask(L.LightningModule):
                 f"set data inputs to {wanted}"
             )
         if not self._checked_inputs:
-            for name, shape in self.net.input_shapes().items():
-                if tuple(batch[name].shape[1:]) != shape:
-                    raise ValueError(
-                        f"model {self.hparams.net!r} expects {name} of shape {shape} (recipe "
-                        f"{wanted[name]!r}), the batch holds {tuple(batch[name].shape[1:])}"
-                    )
+            self.net.check_inputs(batch)
             self._checked_inputs = True
         return {name: batch[name] for name in wanted}
 

@@ -115,7 +115,7 @@ def test_missing_inputs_name_what_the_model_needs():
         task._inputs(batch)
     wrong = _batch(task.net)
     wrong["audio_mel"] = torch.rand(2, 4, 13, 13)
-    with pytest.raises(ValueError, match="expects audio_mel of shape"):
+    with pytest.raises(ValueError, match=r"student needs audio_mel of shape B x 4 x 64 x 64 .*got \(2, 4, 13, 13\)"):
         task._inputs(wrong)
 
 
