@@ -21,11 +21,14 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from datamodules.simulate.ambient import AmbientConfig
     from datamodules.simulate.simulator import SimulationConfig, simulate_dataset
 
-    ranges = {"level_dba": args.ambient_dba, "wind_speed": args.wind}
-    for flag, (lo, hi) in (("--ambient-dba", args.ambient_dba or (0, 0)), ("--wind", args.wind or (0, 0))):
-        if not 0 <= lo <= hi:
-            raise ValueError(f"{flag} needs 0 <= LOW <= HIGH, got {lo:g} {hi:g}")
-    ambient = AmbientConfig(hvac=not args.no_hvac, **{k: tuple(v) for k, v in ranges.items() if v is not None})
+    ranges: dict[str, tuple[float, float]] = {}  # only those given: the rest keep AmbientConfig's defaults
+    for flag, field, given in (("--ambient-dba", "level_dba", args.ambient_dba), ("--wind", "wind_speed", args.wind)):
+        if given is not None:
+            lo, hi = given
+            if not 0 <= lo <= hi:
+                raise ValueError(f"{flag} needs 0 <= LOW <= HIGH, got {lo:g} {hi:g}")
+            ranges[field] = (lo, hi)
+    ambient = AmbientConfig(hvac=not args.no_hvac, **ranges)
     config = SimulationConfig(
         duration=args.seconds,
         drone=args.drone,
