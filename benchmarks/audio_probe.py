@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from sklearn.ensemble import HistGradientBoostingRegressor
 
+from benchmarks.student_check import held_out_split
 from datamodules.formats import open_recording
 from datamodules.mmaud import MMAUDDataModule, SequenceSamples
 
@@ -67,7 +68,7 @@ def run(data: list[Path], seed: int = 0, window_seconds: float = 0.5, stride: in
         max_hz: float = 1200.0, split: dict | None = None) -> dict[str, float]:
     """Probe E below ``max_hz`` and over all bands, and the constant predictor's E, on the test split
     (``split`` as in :func:`benchmarks.student_check.run`)."""
-    module = MMAUDDataModule([str(d) for d in data], split=split or {"seed": seed, "val": 0.15, "test": 0.2},
+    module = MMAUDDataModule([str(d) for d in data], split=split or held_out_split(seed),
                              inputs={}, test_lights=["ideal"])
     module.setup("fit")
     train = probe_features(module.sequences["train"], window_seconds, stride)

@@ -24,6 +24,11 @@ from datamodules.mmaud import MMAUDDataModule
 from zoo.task import TrajectoryTask
 
 
+def held_out_split(seed: int) -> dict[str, float]:
+    """The learning checks' split: seeded by sequence, 15 % validation and 20 % test sequences."""
+    return {"seed": seed, "val": 0.15, "test": 0.2}
+
+
 def _targets(module: MMAUDDataModule, split: str, kind: str) -> tuple[np.ndarray, np.ndarray]:
     xyz = np.concatenate([getattr(s, kind) for s in module.sequences[split]])
     valid = np.concatenate([getattr(s, f"{kind}_valid") for s in module.sequences[split]])
@@ -42,10 +47,10 @@ def run(data: list[Path], alpha: float, epochs: int, seed: int, cache: Path | No
         recipe: str = "aaute", batch_size: int = 32, split: dict | None = None) -> dict[str, float]:
     """Train, select by ``val_loss``, test; metrics plus ``constant_E``, ``best_epoch``, timings.
 
-    ``split``: the DataModule's split (default: seeded, 15 % validation and 20 % test sequences).
+    ``split``: the DataModule's split (default: :func:`held_out_split`).
     """
     L.seed_everything(seed, workers=True)
-    module = MMAUDDataModule([str(d) for d in data], split=split or {"seed": seed, "val": 0.15, "test": 0.2},
+    module = MMAUDDataModule([str(d) for d in data], split=split or held_out_split(seed),
                              inputs={"audio_mel": recipe}, test_lights=["ideal"], batch_size=batch_size,
                              cache_dir=None if cache is None else str(cache))
     task = TrajectoryTask("student", alpha=alpha)
