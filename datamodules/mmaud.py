@@ -6,16 +6,23 @@ inside a teacher gap has no pseudo-label), drone class, visibility in the camera
 sequence. Models differ only in which inputs they consume and with which recipe
 (:mod:`datamodules.features`); the inputs are computed once into a memory-mapped cache.
 
-Splits are by sequence, never by window: explicit lists of sequence ids, or a seeded split
-stratified by drone type. Validation and test run under each light condition in
+The split is an evaluation protocol (:mod:`datamodules.splits`): ``by_sequence`` (default: whole
+recordings, explicit lists or seeded and stratified by drone), ``time_blocks`` (contiguous blocks of
+every recording with purge gaps, for few flights) or ``random_windows`` (the papers' protocol, whose
+test windows overlap training windows). Under the window-level protocols each recording yields one
+piece per split (sequence id ``<recording id>#<split>``) that indexes into the recording's cached
+features, so features are computed once per recording whatever the protocol. Validation and test
+run under each light condition in
 ``test_lights`` (loader index k is condition ``test_lights[k]``), so one ``test`` reports both the
 ideal-light and the darkness numbers.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import zlib
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,13 +44,23 @@ from datamodules.features import (
     scale_image,
 )
 from datamodules.recording import Recording, RecordingError, Track
+from datamodules.splits import (
+    SPLITS,
+    SplitConfig,
+    SplitError,
+    assign_sequences,
+    assign_windows,
+    nearest_distance,
+    shortfall_message,
+)
 
 log = logging.getLogger(__name__)
 
 INPUT_KINDS = ("audio_mel", "image")
 TARGET_MODES = ("both", "ground_truth", "pseudo")
 LIGHTS = ("ideal", "dark")
-SPLITS = ("train", "val", "test")
+#: the splits each stage needs windows in
+STAGE_SPLITS = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), "predict": ("test",)}
 
 
 def discover(root: str | Path | list[str | Path]) -> list[Path]:
@@ -55,17 +72,6 @@ def discover(root: str | Path | list[str | Path]) -> list[Path]:
     if not found:
         raise RecordingError(f"no recordings found under {roots}")
     return sorted(found)
-
-
-def _split_members(entry: str | list[str] | None) -> list[str]:
-    """Sequence ids of one split entry: a list of ids, or a list file of the derived layout."""
-    if entry is None:
-        return []
-    if isinstance(entry, str):
-        from datamodules.formats.derived_npy import read_sample_list
-
-        return sorted(read_sample_list(entry))
-    return list(entry)
 
 
 def _nearest(track: Track | None, times: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -86,7 +92,8 @@ def _nearest(track: Track | None, times: np.ndarray, tolerance: float) -> tuple[
 
 @dataclass
 class SequenceSamples:
-    """The samples of one recording (arrays of equal length) and where its features are cached."""
+    """The samples of one recording, or of one piece of it (arrays of equal length), and where their
+    features are cached: sample ``i`` is row ``rows[i]`` of the recording's cache entries."""
 
     path: Path
     sequence_id: str
@@ -100,9 +107,25 @@ class SequenceSamples:
     visible: np.ndarray
     class_id: int
     feature_keys: dict[str, str]
+    rows: np.ndarray | None = None  #: row of each sample in the cache entries (None: 0, 1, ...)
+    recording_id: str = ""  #: the recording a piece comes from ('' : sequence_id)
+    blocks: int = 1  #: contiguous time blocks of the recording in this piece
+
+    def __post_init__(self) -> None:
+        if self.rows is None:
+            self.rows = np.arange(self.times.size)
+        if not self.recording_id:
+            self.recording_id = self.sequence_id
 
     def __len__(self) -> int:
         return int(self.times.size)
+
+    def piece(self, rows: np.ndarray, sequence_id: str, blocks: int) -> SequenceSamples:
+        """The samples ``rows`` (time-sorted indices into these samples) as a sequence of their own."""
+        rows = np.asarray(rows, dtype=np.int64)
+        arrays = {name: getattr(self, name)[rows] for name in ("times", "gt", "gt_valid", "pseudo", "pseudo_valid",
+                                                                "image_index", "visible", "rows")}
+        return dataclasses.replace(self, sequence_id=sequence_id, blocks=blocks, **arrays)
 
 
 def _visibility(recording: Recording, positions: np.ndarray, has_image: np.ndarray) -> np.ndarray:
@@ -125,10 +148,13 @@ class MMAUDDataModule(L.LightningDataModule):
 
     Args:
         root: recordings: files or folders (any readable layout), or a list of them.
-        split: by sequence. Either explicit ``{"train": [ids], "val": [ids], "test": [ids]}`` (sequence
-            ids or file stems; a value may instead be a list file of the derived layout, e.g.
-            ``train.txt``, whose sequences it names), or seeded ``{"seed": 0, "val": 0.2, "test": 0.2}``,
-            stratified by drone.
+        split: the evaluation protocol (:mod:`datamodules.splits`). ``{"protocol": "by_sequence", "seed": 0,
+            "val": 0.2, "test": 0.2}`` (the default: whole sequences, seeded, stratified by drone), or
+            explicit ``{"train": [ids], "val": [ids], "test": [ids]}`` (sequence ids or file stems; a value
+            may instead be a list file of the derived layout, e.g. ``train.txt``, whose sequences it
+            names), or ``{"protocol": "time_blocks", "seed": 0, "val": 0.2, "test": 0.2, "blocks": 5}``
+            (``block_seconds`` instead of ``blocks``; ``purge_seconds`` defaults to, and is never less
+            than, the window), or ``{"protocol": "random_windows", ...}`` (the papers' overlapping split).
         window_seconds: audio seconds ending at the label time (causal).
         label_rate: samples per second (labels are thinned to this rate).
         inputs: what the model consumes: ``{"audio_mel": <mel recipe>, "image": <image recipe>}``.
@@ -186,9 +212,24 @@ class MMAUDDataModule(L.LightningDataModule):
             raise ValueError(f"dark_mode must be one of {DARK_MODES}, not {dark_mode!r}")
         if targets not in TARGET_MODES:
             raise ValueError(f"targets must be one of {TARGET_MODES}, not {targets!r}")
+        self.split_config = SplitConfig.from_dict(split, self._window_span())
         self.cache = FeatureCache(cache_dir)
         self.sequences: dict[str, list[SequenceSamples]] = {}
         self.skipped: dict[str, int] = {}
+        self.purged = 0  #: windows dropped in the purge gaps of time_blocks
+        self.drone_counts: dict[str, int] = {}  #: recordings found per drone
+
+    @property
+    def protocol(self) -> str:
+        """The evaluation protocol as results tables label it (``random_windows`` says it overlaps)."""
+        return self.split_config.label
+
+    def _window_span(self) -> float:
+        """Seconds of audio one window covers (at least ``window_seconds``)."""
+        span = float(self.hparams.window_seconds)
+        if self.hparams.faithful_window_order and self.audio_recipe is not None:
+            span = max(span, self.audio_recipe.chunk_seconds * (1 - min(self.audio_recipe.chunk_offsets)))
+        return span
 
     # ------------------------------------------------------------------------------ preparation
 
@@ -197,8 +238,57 @@ class MMAUDDataModule(L.LightningDataModule):
         self._index()
 
     def setup(self, stage: str | None = None) -> None:
+        """Index (if not done yet) and check that the splits ``stage`` needs have windows."""
         if not self.sequences:
             self._index()  # other ranks: the caches exist by now, only the index is rebuilt
+        self._require(stage, STAGE_SPLITS.get(stage or "", ()))
+        if self.split_config.protocol == "random_windows":
+            summary = self.split_summary()
+            log.warning("split protocol random_windows: %.0f%% of the test windows (%.0f%% of the validation "
+                        "windows) have a training window of the same flight closer than the %g s window, so "
+                        "their audio overlaps it; test errors are optimistic and not comparable to by_sequence "
+                        "or time_blocks", 100 * summary["test"]["overlap_with_train"],
+                        100 * summary["val"]["overlap_with_train"], self._window_span())
+
+    def _require(self, stage: str | None, needed: tuple[str, ...]) -> None:
+        """Fail with one actionable line if a split in ``needed`` has no windows."""
+        summary = self.split_summary()
+        empty = [name for name in needed if summary[name]["windows"] == 0]
+        if empty:
+            raise SplitError(shortfall_message(self.split_config, stage or f"load {empty[0]}", empty, summary,
+                                               self.drone_counts))
+
+    def split_summary(self) -> dict[str, Any]:
+        """What the split holds, for results tables and run records.
+
+        Returns:
+            ``{"protocol": <label as in protocol>, "purged_windows": <dropped in purge gaps>, "train": {...},
+            "val": {...}, "test": {...}}``; per split ``sequences`` (recordings contributing), ``pieces``
+            (entries in :attr:`sequence_ids`), ``blocks`` (contiguous time blocks: one per piece under
+            by_sequence, one per window under random_windows) and ``windows``; val and test also give
+            ``overlap_with_train``: the share of their windows with a training window of the same recording
+            closer than the window's audio span (0 unless the protocol is random_windows). time_blocks adds
+            ``purge_seconds``.
+        """
+        span = self._window_span()
+        train_times: dict[str, list[np.ndarray]] = {}
+        for piece in self.sequences.get("train", []):
+            train_times.setdefault(piece.recording_id, []).append(piece.times)
+        summary: dict[str, Any] = {"protocol": self.protocol, "purged_windows": int(self.purged)}
+        if self.split_config.protocol == "time_blocks":
+            summary["purge_seconds"] = self.split_config.purge_seconds
+        for name in SPLITS:
+            pieces = self.sequences.get(name, [])
+            entry: dict[str, Any] = {"sequences": len({p.recording_id for p in pieces}), "pieces": len(pieces),
+                                     "blocks": sum(p.blocks for p in pieces), "windows": sum(len(p) for p in pieces)}
+            if name != "train":
+                overlapping = 0
+                for piece in pieces:
+                    reference = np.sort(np.concatenate(train_times.get(piece.recording_id, [np.zeros(0)])))
+                    overlapping += int((nearest_distance(piece.times, reference) < span).sum())
+                entry["overlap_with_train"] = overlapping / entry["windows"] if entry["windows"] else 0.0
+            summary[name] = entry
+        return summary
 
     @property
     def sequence_paths(self) -> list[Path]:
@@ -219,9 +309,11 @@ class MMAUDDataModule(L.LightningDataModule):
         ids = [rec.sequence_id for _, rec in recordings]
         if len(set(ids)) != len(ids):
             raise RecordingError(f"sequence ids are not unique under {self.hparams.root}")
-        assignment = self._assign_splits(recordings)
+        self.drone_counts = dict(Counter(rec.drone or "unknown" for _, rec in recordings))
+        by_sequence = self.split_config.protocol == "by_sequence"
+        assignment = self._assign_splits(recordings) if by_sequence else ["all"] * len(recordings)
         self.sequences = {name: [] for name in SPLITS}
-        self.skipped = {}
+        self.skipped, self.purged = {}, 0
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # one small window at a time: threads only contend
         try:
@@ -229,49 +321,42 @@ class MMAUDDataModule(L.LightningDataModule):
                 path, recording = recordings.pop(0)  # released when done: readers cache chunks
                 if split_name is None:
                     continue
-                samples = self._samples(path, recording)
-                if samples is not None:
+                samples = self._samples(path, recording)  # features of every window, once per recording
+                if samples is None:
+                    continue
+                if by_sequence:
                     self.sequences[split_name].append(samples)
+                else:
+                    self._add_pieces(samples)
         finally:
             torch.set_num_threads(threads)
+        ids = self.sequence_ids
+        if len(set(ids)) != len(ids):
+            raise RecordingError(f"sequence ids of the split pieces are not unique under {self.hparams.root} "
+                                 f"(a recording id ends in '#<split>'?)")
         for reason, count in self.skipped.items():
             log.warning("skipped %d windows: %s", count, reason)
+        if self.split_config.protocol == "time_blocks":
+            log.info("time_blocks: dropped %d windows in purge gaps of %g s between blocks of different splits",
+                     self.purged, self.split_config.purge_seconds)
         sizes = {name: sum(len(s) for s in seqs) for name, seqs in self.sequences.items()}
-        log.info("samples per split: %s (sequences %s)", sizes, {n: len(s) for n, s in self.sequences.items()})
+        log.info("split %s: samples per split %s (pieces %s)", self.split_config.describe(), sizes,
+                 {n: len(s) for n, s in self.sequences.items()})
+
+    def _add_pieces(self, samples: SequenceSamples) -> None:
+        """Split one recording's windows (window-level protocols): one piece per split it reaches."""
+        assignment = assign_windows(samples.times, self.split_config, samples.sequence_id)
+        self.purged += assignment.dropped
+        for name in SPLITS:
+            rows = assignment.rows(name)
+            if rows.size:
+                self.sequences[name].append(samples.piece(rows, f"{samples.sequence_id}#{name}",
+                                                          assignment.blocks(name)))
 
     def _assign_splits(self, recordings: list[tuple[Path, Recording]]) -> list[str | None]:
-        """Split name of each recording (None: not used)."""
-        split = dict(self.hparams.split or {"seed": 0, "val": 0.2, "test": 0.2})
+        """The by_sequence split of each recording (None: not used)."""
         names = [(rec.sequence_id, path.stem) for path, rec in recordings]
-        if any(isinstance(split.get(key), list | tuple | str) for key in SPLITS):
-            lookup: dict[str, str] = {}
-            for name in SPLITS:
-                for item in _split_members(split.get(name)):
-                    if item in lookup:
-                        raise ValueError(f"sequence {item!r} is listed in both {lookup[item]!r} and {name!r}")
-                    lookup[item] = name
-            known = {n for pair in names for n in pair}
-            missing = sorted(set(lookup) - known)
-            if missing:
-                raise RecordingError(f"split names sequences that were not found: {missing}")
-            return [lookup.get(seq, lookup.get(stem)) for seq, stem in names]
-        rng = np.random.default_rng(int(split.get("seed", 0)))
-        fractions = {"val": float(split.get("val", 0.2)), "test": float(split.get("test", 0.2))}
-        result: list[str | None] = ["train"] * len(recordings)
-        groups: dict[str, list[int]] = {}
-        for i, (_, rec) in enumerate(recordings):
-            groups.setdefault(rec.drone or "unknown", []).append(i)
-        for members in groups.values():
-            order = rng.permutation(members)
-            counts = {name: int(round(frac * len(order))) for name, frac in fractions.items()}
-            if len(order) >= 3:
-                counts = {name: max(1, c) if fractions[name] > 0 else 0 for name, c in counts.items()}
-            cursor = 0
-            for name in ("test", "val"):
-                for i in order[cursor:cursor + counts[name]]:
-                    result[int(i)] = name
-                cursor += counts[name]
-        return result
+        return assign_sequences(names, [rec.drone for _, rec in recordings], self.split_config)
 
     def _label_times(self, recording: Recording) -> np.ndarray:
         reference = recording.ground_truth if recording.ground_truth is not None else recording.pseudo_labels
@@ -379,9 +464,8 @@ class MMAUDDataModule(L.LightningDataModule):
     def _dataset(self, split_name: str, light: str, train: bool) -> WindowDataset:
         if not self.sequences:
             self.setup()
+        self._require(None, (split_name,))
         sequences = self.sequences[split_name]
-        if not sequences:
-            raise RecordingError(f"split {split_name!r} has no sequences (check the split in the data config)")
         offset = {sequence_id: i for i, sequence_id in enumerate(self.sequence_ids)}
         return WindowDataset(sequences, self.cache, [offset[s.sequence_id] for s in sequences], light,
                              self.hparams.dark_mode, self.hparams.train_dark_probability if train else 0.0)
@@ -441,15 +525,16 @@ class WindowDataset(Dataset):
             "time": torch.as_tensor(seq.times[i], dtype=torch.float64),
             "sequence": torch.as_tensor(self.sequence_index[s], dtype=torch.long),
         }
+        row = int(seq.rows[i])  # a piece's samples index into its recording's cache entries
         if "audio_mel" in seq.feature_keys:
-            item["audio_mel"] = torch.from_numpy(np.array(self._array(seq.feature_keys["audio_mel"])[i]))
+            item["audio_mel"] = torch.from_numpy(np.array(self._array(seq.feature_keys["audio_mel"])[row]))
         visible = float(seq.visible[i])
         dark = self.light == "dark" or (self.dark_probability > 0 and torch.rand(()).item() < self.dark_probability)
         if "image" in seq.feature_keys:
             if dark and self.dark_mode == "physical":
-                image = torch.from_numpy(np.array(self._array(seq.feature_keys["image_dark"])[i]))
+                image = torch.from_numpy(np.array(self._array(seq.feature_keys["image_dark"])[row]))
             else:
-                image = torch.from_numpy(np.array(self._array(seq.feature_keys["image"])[i]))
+                image = torch.from_numpy(np.array(self._array(seq.feature_keys["image"])[row]))
                 if dark:
                     image = published_dark(image)
             item["image"] = scale_image(image)

@@ -11,12 +11,12 @@ from datamodules.mmaud import MMAUDDataModule
 from datamodules.recording import Recording, RecordingError, Track
 
 
-def _module(root, tmp_path, **kwargs) -> MMAUDDataModule:
+def _module(root, tmp_path, stage: str = "fit", **kwargs) -> MMAUDDataModule:
     defaults = dict(split={"train": ["sim11-0000-avata"], "val": ["sim11-0001-m300"], "test": ["sim11-0002-mavic2"]},
                     window_seconds=1.0, batch_size=4, cache_dir=str(tmp_path / "cache"))
     module = MMAUDDataModule(str(root), **{**defaults, **kwargs})
     module.prepare_data()
-    module.setup("fit")
+    module.setup(stage)
     return module
 
 
@@ -47,14 +47,16 @@ def test_target_modes_hide_what_the_loss_must_not_see(labelled_dir, tmp_path):
 
 def test_darkness_changes_the_image_not_the_audio(simulated_dir, tmp_path):
     only_test = {"test": ["sim11-0002-mavic2"]}
-    module = _module(simulated_dir, tmp_path, inputs={"audio_mel": "avfdti", "image": "resnet256"}, split=only_test)
+    module = _module(simulated_dir, tmp_path, "test", inputs={"audio_mel": "avfdti", "image": "resnet256"},
+                     split=only_test)
     ideal, dark = (next(iter(loader)) for loader in module.test_dataloader())
     assert torch.equal(ideal["audio_mel"], dark["audio_mel"])
     assert not torch.equal(ideal["image"], dark["image"])
     assert torch.allclose(dark["image"], torch.full_like(dark["image"], 3 / 127.5 - 1))
     assert not dark["visible"].any() and dark["dark"].all() and not ideal["dark"].any()
 
-    physical = _module(simulated_dir, tmp_path, inputs={"image": "resnet256"}, dark_mode="physical", split=only_test)
+    physical = _module(simulated_dir, tmp_path, "test", inputs={"image": "resnet256"}, dark_mode="physical",
+                       split=only_test)
     ideal_p, dark_p = (next(iter(loader)) for loader in physical.test_dataloader())
     assert dark_p["image"].mean() < ideal_p["image"].mean() - 0.3
     assert dark_p["image"].std() > 0.01  # a noisy low-light frame, not a constant
