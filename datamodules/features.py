@@ -10,8 +10,14 @@ Recipes follow the published preprocessing of each model family:
 - ``avfdti`` (recipe A, AV-FDTI and every comparison baseline): hop 512, 20 Slaney mels from 1 to
   8 kHz with the sample rate passed as 48 kHz, per-channel min-max, resize to 64 x 64;
   ``avfdti_224`` (VorasNet) and ``avfdti_13`` (ASDNet) resize that 64 x 64 map again.
-- images: the left 1280 columns, resized with antialiasing to 256 x 256 (112 x 112 for ASDNet),
-  kept as uint8 and scaled to [-1, 1] (value / 127.5 - 1, no ImageNet statistics) at batch time.
+- images: the left 1280 columns, resized with antialiasing to 256 x 256 (``resnet256``; 112 x 112,
+  ``talknet112``, for ASDNet), kept as uint8 and scaled to [-1, 1] (value / 127.5 - 1, no ImageNet
+  statistics) at batch time.
+- reduced-budget images (not the papers' recipes): ``resnet128`` and ``resnet64`` (the same crop at
+  128 x 128 and 64 x 64) and ``talknet56`` (56 x 56) cut the image models' compute about 4x and 16x
+  so they can train on a CPU demo budget. A net reads them only when asked
+  (``TrajectoryNet(input_recipes={"image": "resnet64"})``, which keeps its parameters unchanged);
+  results so obtained are reduced-budget results and are reported as such.
 - darkness: ``published`` replaces the image by img * 0 + 3 (a near-black constant, -0.976 after
   scaling) and sets the visibility label to 0 (AV-FDTI ``dark_aug``); ``physical`` renders the
   frame in low light (:func:`datamodules.simulate.camera.darken_image`).
@@ -93,7 +99,15 @@ MEL_RECIPES: dict[str, MelRecipe] = {
     )
 }
 IMAGE_RECIPES: dict[str, ImageRecipe] = {
-    r.name: r for r in (ImageRecipe("resnet256", (256, 256)), ImageRecipe("talknet112", (112, 112)))
+    r.name: r
+    for r in (
+        ImageRecipe("resnet256", (256, 256)),
+        ImageRecipe("talknet112", (112, 112)),
+        # reduced-budget variants (not the papers'): the same crop at a smaller size
+        ImageRecipe("resnet128", (128, 128)),
+        ImageRecipe("resnet64", (64, 64)),
+        ImageRecipe("talknet56", (56, 56)),
+    )
 }
 
 

@@ -19,6 +19,11 @@ Layers (AV-FDTI ``nets/comparison/talkNetModel.py`` and ``talknet/*``, TalkNet-A
   post-norm), concatenation -> B x 3 x 256, self-attention (d 256), flatten 768 -> Linear 100 + ReLU ->
   Linear 100 -> 3 (position) and 100 -> 6 (class logits).
 
+Reduced budget (not the paper's): ``input_recipes={"image": "talknet56"}`` reads 56 x 56 frames (a
+512 x 2 x 2 trunk map) with the same parameters: the frame pooling, a 4 x 4 average at the reference
+size, i.e. a global average, becomes a global average over whatever map the trunk gives; about 4x less
+visual compute.
+
 Details kept from the published code: the SE block applies ReLU *before* its first BatchNorm; the
 attention layer takes its query from ``tar`` and keys / values from ``src`` but adds the residual to
 ``src`` (so "A->V" returns the audio stream updated by attention from the visual queries); the
@@ -118,7 +123,7 @@ class VisualFrontend(nn.Module):
         )
         self.resnet = nn.Sequential(ResNetLayer(64, 64, 1), ResNetLayer(64, 128, 2), ResNetLayer(128, 256, 2),
                                     ResNetLayer(256, 512, 2))
-        self.pool = nn.AvgPool2d(4, stride=1)
+        self.pool = nn.AvgPool2d(4, stride=1)  # the reference 4 x 4 map -> 1 x 1: a global average
 
     def forward(self, frames: torch.Tensor) -> torch.Tensor:
         b, t, h, w = frames.shape
@@ -127,9 +132,9 @@ class VisualFrontend(nn.Module):
         else:  # B videos of T frames each
             x = self.frontend3d(frames.unsqueeze(1))
         x = x.transpose(1, 2).reshape(b * t, x.shape[1], *x.shape[-2:])  # (B T) x 64 x 28 x 28, sample-major
-        x = self.pool(self.resnet(x))
-        if x.shape[-2:] != (1, 1):
-            raise ValueError(f"the ASDNet visual trunk needs 112 x 112 frames, got {h} x {w}")
+        x = self.resnet(x)
+        # the reference path as published; other frame sizes: the global average it amounts to there
+        x = self.pool(x) if x.shape[-2:] == (4, 4) else x.mean(dim=(-2, -1), keepdim=True)
         return x.reshape(b, t, -1)
 
     def extra_repr(self) -> str:
@@ -242,14 +247,15 @@ class ASDNet(TrajectoryNet):
         class_weight: weight of the class cross-entropy (0.1, AV-FDTI's weight).
         batch_mixing: reproduce the published frontend that convolves across batch boundaries (off:
             each sample's frames are convolved on their own; see the module docstring).
+        input_recipes: recipes replacing the reference ones, e.g. ``{"image": "talknet56"}`` (reduced budget).
     """
 
     inputs = {"audio_mel": "avfdti_13", "image": "talknet112"}
     category = "supervised"
 
     def __init__(self, in_channels: int = 4, dropout: float = 0.1, num_classes: int = NUM_CLASSES,
-                 class_weight: float = 0.1, batch_mixing: bool = False):
-        super().__init__(in_channels, class_weight)
+                 class_weight: float = 0.1, batch_mixing: bool = False, input_recipes: dict[str, str] | None = None):
+        super().__init__(in_channels, class_weight, input_recipes)
         self.visual_frontend = VisualFrontend(batch_mixing)
         self.visual_tcn = nn.Sequential(*(DSConv1d(512) for _ in range(5)))
         self.visual_conv1d = nn.Sequential(nn.Conv1d(512, 256, 5, padding=2), nn.BatchNorm1d(256), nn.ReLU(),

@@ -37,6 +37,18 @@ Losses (``utils/train_val.py``, :meth:`AVFDTI.auxiliary_losses`), on samples wit
   (the last two over all samples with a label). The published 0.1 MSE(trajectory) term is omitted:
   batches carry no future targets yet.
 
+Reduced budget (not the paper's; it changes the architecture, so a reduced AV-FDTI is reported as
+such): ``heatmap_size`` (default 512, the reference) = 16 x 2^k sets the decoder's output, with
+k stride-2 transposed convolutions instead of five; 128 drops two of them and runs the final convs at
+128 x 128, about 16x less decoder compute, with 2 x (9 ``kernels``^2 + ``kernels``) fewer parameters
+and fewer ``heatmap.layers`` entries (a reference checkpoint does not load into it). The
+grid covers the same bird's-eye bounds with 512 / size times larger cells, so :meth:`AVFDTI.decode`,
+:meth:`AVFDTI.target_cells` (offsets still in cm from the cell corner) and the losses follow the
+size, and ``heatmap_radius`` is given in pixels of the reference 512 map and scaled by size / 512
+(40 -> 10 px at 128: the same metric area). ``input_recipes={"image": "resnet64"}`` reads a smaller
+image with the same encoder parameters (:class:`~zoo.nets.blocks.VisualEncoder`). The reference
+shapes and parameters are unchanged by default.
+
 Targets outside the bounds are clipped to the border (their Gaussian sits on the edge cell and the
 offset is measured from the clipped point); they are counted in ``clipped_targets`` and logged, since
 many of them mean the bounds do not fit the data.
@@ -59,6 +71,8 @@ log = logging.getLogger(__name__)
 
 #: [[x_min, x_max], [y_min, y_max]] (m) hard-coded in AV-FDTI (``utils/metrics.py``, ``obtain_gaussian``)
 AVFDTI_BOUNDS = ((-1.827702940235904, 5.861056694237837), (-4.720740577048357, 18.766594286932648))
+REFERENCE_HEATMAP = 512  #: the published heat-map side (px)
+HEATMAP_SEED = 16  #: side of the decoder's seed map before the transposed convolutions
 
 
 class AttentionBlock(nn.Module):
@@ -83,11 +97,13 @@ class AttentionBlock(nn.Module):
 
 
 class HeatmapDecoder(nn.Module):
-    """d-vector -> 16 x 16 seed -> five stride-2 transposed convs -> 512 x 512 heat-map logits."""
+    """d-vector -> 16 x 16 seed -> ``upsamplings`` stride-2 transposed convs (5: 512 x 512) -> heat-map logits."""
 
     def __init__(self, feature_dim: int = 512, channels: int = 32, convs: int = 1, seed: int = 16,
                  upsamplings: int = 5):
         super().__init__()
+        if upsamplings < 1:
+            raise ValueError(f"the heat-map decoder needs at least one transposed convolution, got {upsamplings}")
         self.seed = seed
         self.size = seed * 2**upsamplings
         self.project = nn.Sequential(nn.Linear(feature_dim, seed * seed), nn.ReLU())
@@ -167,11 +183,15 @@ class AVFDTI(TrajectoryNet):
         dropout: Dropout2d of the audio branches (0.3).
         attention_dropout: dropout of the attention block (0.4).
         heads: attention heads (8).
-        decoder_convs: 3 x 3 convolutions at 512 x 512 before the output conv (1: the compared variant;
-            3: the later published code).
+        decoder_convs: 3 x 3 convolutions at the heat-map size before the output conv (1: the compared
+            variant; 3: the later published code).
         resnet_weights: a local torchvision ResNet-50 state-dict file (ImageNet V1); None: random.
         num_classes: class logits.
-        heatmap_radius: radius of the target Gaussian in pixels (40; sigma = (2 r + 1) / 6).
+        heatmap_radius: radius of the target Gaussian in pixels of the reference 512 x 512 map (40; sigma =
+            (2 r + 1) / 6); scaled by ``heatmap_size`` / 512 (rounded, at least 1 px): ``self.heatmap_radius``.
+        heatmap_size: side of the heat map, 16 x 2^k with k >= 1 (512, the reference; 128 for a reduced
+            budget: a different architecture, see the module docstring).
+        input_recipes: recipes replacing the reference ones, e.g. ``{"image": "resnet64"}`` (reduced budget).
         heatmap_weight, z_weight, offset_weight, visibility_weight, class_weight: loss weights
             (1, 1, 0.1, 0.1, 0.1 as published since commit b50f11d).
     """
@@ -184,9 +204,14 @@ class AVFDTI(TrajectoryNet):
                  attention_dropout: float = 0.4, heads: int = 8, decoder_convs: int = 1,
                  resnet_weights: str | None = None, num_classes: int = NUM_CLASSES, heatmap_radius: int = 40,
                  heatmap_weight: float = 1.0, z_weight: float = 1.0, offset_weight: float = 0.1,
-                 visibility_weight: float = 0.1, class_weight: float = 0.1):
-        super().__init__(in_channels)
-        self.heatmap_radius = heatmap_radius
+                 visibility_weight: float = 0.1, class_weight: float = 0.1, heatmap_size: int = REFERENCE_HEATMAP,
+                 input_recipes: dict[str, str] | None = None):
+        super().__init__(in_channels, input_recipes=input_recipes)
+        upsamplings = round(math.log2(heatmap_size / HEATMAP_SEED)) if heatmap_size > HEATMAP_SEED else 0
+        if upsamplings < 1 or HEATMAP_SEED * 2**upsamplings != heatmap_size:
+            raise ValueError(f"AV-FDTI heatmap_size must be {HEATMAP_SEED} x 2^k with k >= 1 (32, 64, 128, 256, "
+                             f"512 = the reference), got {heatmap_size}")
+        self.heatmap_radius = max(1, round(heatmap_radius * heatmap_size / REFERENCE_HEATMAP))  #: px of this map
         self.loss_weights = {"heatmap": heatmap_weight, "z": z_weight, "offset": offset_weight,
                         "visibility": visibility_weight, "class": class_weight}
         self.audio = FourBranchAudio(in_channels, kernels, feature_dim, dropout)
@@ -197,10 +222,16 @@ class AVFDTI(TrajectoryNet):
         self.trajectory = MLP((feature_dim, 256, 128, 30))
         self.z = MLP((feature_dim, 256, 100, 1))
         self.offset = MLP((feature_dim, 100, 2))
-        self.heatmap = HeatmapDecoder(feature_dim, kernels, decoder_convs)
+        self.heatmap = HeatmapDecoder(feature_dim, kernels, decoder_convs, HEATMAP_SEED, upsamplings)
         self.register_buffer("bev_bounds", torch.tensor(AVFDTI_BOUNDS, dtype=torch.float64))
         self.clipped_targets = 0  #: heat-map targets that lay outside the bounds (clipped to the border)
         self.heatmap_targets = 0  #: heat-map targets built so far
+
+    def reduced_settings(self) -> dict[str, str]:
+        settings = super().reduced_settings()
+        if self.heatmap.size != REFERENCE_HEATMAP:
+            settings["heatmap_size"] = f"{self.heatmap.size} (reference {REFERENCE_HEATMAP})"
+        return settings
 
     # ------------------------------------------------------------------------------ bounds
 
@@ -222,7 +253,11 @@ class AVFDTI(TrajectoryNet):
         return bounds[:, 0], (bounds[:, 1] - bounds[:, 0]) / self.heatmap.size
 
     def decode(self, heatmap: torch.Tensor, offset: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """Position B x 3 (m) from a heat map B x H x W, offsets B x 2 (cm) and heights B x 1 (m)."""
+        """Position B x 3 (m) from a heat map B x size x size, offsets B x 2 (cm) and heights B x 1 (m)."""
+        size = self.heatmap.size
+        if tuple(heatmap.shape[-2:]) != (size, size):
+            raise ValueError(f"AV-FDTI decodes {size} x {size} heat maps (heatmap_size {size}), "
+                             f"got {tuple(heatmap.shape[-2:])}")
         x_index = heatmap.sum(dim=1).argmax(dim=1)  # column sums -> x
         y_index = heatmap.sum(dim=2).argmax(dim=1)  # row sums -> y
         low, cell = self._grid()
@@ -256,6 +291,7 @@ class AVFDTI(TrajectoryNet):
     # ------------------------------------------------------------------------------ forward and losses
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        self.check_inputs(inputs)
         audio = self.audio(inputs["audio_mel"])
         fused, visibility = self.gate(audio, self.visual(inputs["image"]))
         features = self.attention(fused, audio)

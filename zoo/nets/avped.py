@@ -9,6 +9,10 @@ Layers (AV-FDTI ``nets/comparison/avped.py``):
   [audio, visual] tokens (a dark image should move the weight to the audio token);
 - heads: DetectNet(256): position 3, class 6, trajectory 10 x 3; the visibility logits are returned too.
 
+Reduced budget (not the paper's): ``input_recipes={"image": "resnet64"}`` (or ``resnet128``) reads a
+smaller image through the same visual encoder and parameters (its map is brought to the 8 x 8 grid);
+the gate reads the visual feature as before, so a dark frame still moves the weight to audio.
+
 32.27 M parameters in total, 30.22 M used. Section 11 gives 32.36 M total: the published audio
 encoder also declares two unused wider branches (10 x 64, 64 x 10) and four unused BatchNorms
 (82 k), which are not rebuilt here (a checkpoint converter drops them); the used count matches.
@@ -48,6 +52,7 @@ class AVPed(TrajectoryNet):
         num_classes: class logits.
         visibility_weight: weight of the visibility cross-entropy (AV-PedAware: 0.5).
         class_weight: weight of the class cross-entropy (AV-FDTI: 0.1).
+        input_recipes: recipes replacing the reference ones, e.g. ``{"image": "resnet64"}`` (reduced budget).
     """
 
     inputs = {"audio_mel": "avfdti", "image": "resnet256"}
@@ -55,8 +60,9 @@ class AVPed(TrajectoryNet):
 
     def __init__(self, in_channels: int = 4, kernels: int = 16, feature_dim: int = 256, dropout: float = 0.3,
                  resnet_weights: str | None = None, gate_hidden: tuple[int, ...] = (128,),
-                 num_classes: int = NUM_CLASSES, visibility_weight: float = 0.5, class_weight: float = 0.1):
-        super().__init__(in_channels, class_weight)
+                 num_classes: int = NUM_CLASSES, visibility_weight: float = 0.5, class_weight: float = 0.1,
+                 input_recipes: dict[str, str] | None = None):
+        super().__init__(in_channels, class_weight, input_recipes)
         self.visibility_weight = visibility_weight
         self.audio = FourBranchAudio(in_channels, kernels, feature_dim, dropout)
         self.visual = VisualEncoder(feature_dim, resnet_weights)
@@ -64,6 +70,7 @@ class AVPed(TrajectoryNet):
         self.head = DetectNet(feature_dim, num_classes)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        self.check_inputs(inputs)
         fused, visibility = self.gate(self.audio(inputs["audio_mel"]), self.visual(inputs["image"]))
         return {**self.head(fused), "visibility_logits": visibility}
 

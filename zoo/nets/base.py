@@ -8,11 +8,22 @@ the paper's table, and whether the position output is trained by regression (AV-
 position from a heat map and trains only its auxiliary losses). ``auxiliary_losses`` returns the
 net's own weighted loss terms given its outputs and the training targets; by default that is
 ``class_weight`` x the cross-entropy of a ``class_logits`` head, if the net has one.
+
+The class attribute ``inputs`` is the reference (the papers' recipes; profiling builds a default net,
+so reference GMACs never change). A net built with ``input_recipes`` (e.g. ``{"image": "resnet64"}``,
+a reduced-budget recipe of :mod:`datamodules.features`) reads other recipes of the same kind: the
+instance attribute ``inputs`` holds the merged mapping, and :meth:`TrajectoryNet.input_shapes`,
+:meth:`~TrajectoryNet.check_inputs` and :meth:`~TrajectoryNet.example_inputs` follow it, so data
+made with another recipe still fails with an error naming the recipe the net expects. Only nets
+whose encoders adapt to the size accept the argument (the image nets); their parameters are the
+same at every size. :meth:`TrajectoryNet.reduced_settings` lists what departs from the reference,
+for the captions of reduced-budget results.
 """
 
 from __future__ import annotations
 
-from typing import ClassVar
+from collections.abc import Callable, Mapping
+from typing import Any, ClassVar
 
 import torch
 from torch import nn
@@ -21,19 +32,54 @@ from datamodules.features import image_recipe, mel_recipe
 
 NUM_CLASSES = 6  #: five drone types + "no drone" (AV-FDTI class convention)
 
+#: input name -> the lookup of its recipe kind (raises ValueError listing the known recipes of that kind)
+RECIPE_LOOKUPS: dict[str, Callable[[str], Any]] = {"audio_mel": mel_recipe, "image": image_recipe}
+
 
 class TrajectoryNet(nn.Module):
     """Base class of the zoo's networks (see the module docstring)."""
 
     model_name: ClassVar[str] = ""
-    inputs: ClassVar[dict[str, str]] = {}
+    #: input name -> recipe; on the class: the reference recipes; on an instance: the ones it reads
+    inputs: dict[str, str] = {}
     category: ClassVar[str] = "supervised"  #: 'supervised' or 'self-supervised' (the paper's table)
     trains_position: ClassVar[bool] = True
 
-    def __init__(self, in_channels: int = 4, class_weight: float = 0.0):
+    def __init__(self, in_channels: int = 4, class_weight: float = 0.0, input_recipes: dict[str, str] | None = None):
         super().__init__()
         self.in_channels = in_channels
         self.class_weight = class_weight
+        self.inputs = self.resolve_input_recipes(input_recipes)
+
+    @classmethod
+    def resolve_input_recipes(cls, input_recipes: Mapping[str, str] | None) -> dict[str, str]:
+        """The reference ``inputs`` with ``input_recipes`` merged over them, validated.
+
+        Raises:
+            ValueError: an input the net does not declare, or a recipe unknown for that input's kind.
+        """
+        recipes = dict(cls.inputs)
+        if input_recipes is None:
+            return recipes
+        if not isinstance(input_recipes, Mapping):
+            raise ValueError(f"{cls.model_name} input_recipes must map input name -> recipe name, "
+                             f"got {input_recipes!r}")
+        for name, recipe in input_recipes.items():
+            if name not in recipes:
+                raise ValueError(f"{cls.model_name} has no input {name!r} to give a recipe to; "
+                                 f"its inputs: {recipes}")
+            try:
+                RECIPE_LOOKUPS[name](recipe)
+            except ValueError as error:
+                raise ValueError(f"{cls.model_name} input_recipes[{name!r}]: {error}") from None
+            recipes[name] = recipe
+        return recipes
+
+    def reduced_settings(self) -> dict[str, str]:
+        """Where this instance departs from the reference: setting -> "value (reference value)"; {} if nowhere."""
+        reference = type(self).inputs
+        return {f"inputs.{name}": f"{recipe} (reference {reference[name]})"
+                for name, recipe in self.inputs.items() if recipe != reference[name]}
 
     def check_inputs(self, inputs: dict[str, torch.Tensor]) -> None:
         """Raise a ValueError naming the input, recipe and shape when ``inputs`` do not fit."""
@@ -48,7 +94,7 @@ class TrajectoryNet(nn.Module):
                                  f"(recipe {self.inputs[name]!r}), got {got}")
 
     def input_shapes(self) -> dict[str, tuple[int, ...]]:
-        """Per-sample shape of each input (without the batch axis), from the declared recipes."""
+        """Per-sample shape of each input (without the batch axis), from this instance's recipes."""
         shapes: dict[str, tuple[int, ...]] = {}
         for name, recipe in self.inputs.items():
             if name == "audio_mel":
@@ -58,7 +104,7 @@ class TrajectoryNet(nn.Module):
         return shapes
 
     def example_inputs(self, batch_size: int = 1) -> dict[str, torch.Tensor]:
-        """Random inputs of the reference shapes (for profiling and tests)."""
+        """Random inputs of this instance's shapes (a default net: the reference shapes, for profiling)."""
         generator = torch.Generator().manual_seed(0)
         return {name: torch.rand(batch_size, *shape, generator=generator) * (2 if name == "image" else 1)
                 - (1 if name == "image" else 0) for name, shape in self.input_shapes().items()}

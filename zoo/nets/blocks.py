@@ -7,7 +7,8 @@
 - :class:`VisualEncoder`: a torchvision ResNet-50 trunk (2048 x 8 x 8 at 256 x 256), two 3 x 3
   convolutions (2048 -> 256 -> 32) and a projection of the 2048 flattened values to d. The whole
   ResNet-50 is kept as a sub-module, as in the original, so its unused classifier is part of the
-  parameter total and the authors' checkpoints map one to one.
+  parameter total and the authors' checkpoints map one to one. Other image sizes (the reduced-budget
+  recipes) are brought to the reference 8 x 8 grid before the projection, with the same parameters.
 - :class:`MLP` and :class:`DetectNet` (position 3, class 6 and a 10-step trajectory head).
 - :class:`VisibilityGate`: a softmax over [audio, visual] tokens from a "drone visible" MLP on the
   visual feature, whose weighted sum is the fused feature (AV-PED, AV-FDTI).
@@ -19,6 +20,7 @@ from pathlib import Path
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from zoo.nets.base import NUM_CLASSES
 
@@ -60,7 +62,23 @@ def resnet50(weights: str | Path | None = None) -> nn.Module:
 
 
 class VisualEncoder(nn.Module):
-    """ResNet-50 trunk + conv 2048->256 + conv 256->32 + FC 2048->d (an image of 3 x 256 x 256)."""
+    """ResNet-50 trunk + conv 2048->256 + conv 256->32 + FC 2048->d (reference: an image of 3 x 256 x 256).
+
+    The trunk's stride is 32, so a 256 x 256 image gives the 32 x 8 x 8 map whose 2048 values the FC
+    reads. Another image size (a reduced-budget recipe such as ``resnet64``: a 2 x 2 map) is brought to
+    that 8 x 8 grid first, so the parameters, and a checkpoint, are the same at every size:
+
+    - a map smaller than 8 x 8 in both axes is upsampled by **nearest** neighbour: every reference cell
+      gets the feature of the reduced cell that covers the same part of the image (at the power-of-two
+      sizes an exact block copy), so each FC weight keeps looking at the image region it was trained on,
+      and no values between cells are invented (bilinear would blend neighbouring regions);
+    - any other map (larger in an axis) is **adaptive-average pooled**: every reference cell averages
+      the cells covering its part of the image.
+
+    At 8 x 8 (256 x 256 images) neither runs: the reference path is unchanged, op for op.
+    """
+
+    grid = (8, 8)  #: the reference map size the projection reads
 
     def __init__(self, feature_dim: int = 256, resnet_weights: str | None = None):
         super().__init__()
@@ -68,18 +86,24 @@ class VisualEncoder(nn.Module):
         self.reduce = nn.Sequential(
             nn.Conv2d(2048, 256, 3, padding=1), nn.ReLU(), nn.Conv2d(256, 32, 3, padding=1), nn.ReLU()
         )
-        self.project = nn.Sequential(nn.Linear(32 * 8 * 8, feature_dim), nn.ReLU())
+        self.project = nn.Sequential(nn.Linear(32 * self.grid[0] * self.grid[1], feature_dim), nn.ReLU())
 
     def trunk(self, image: torch.Tensor) -> torch.Tensor:
         r = self.resnet
         x = r.maxpool(r.relu(r.bn1(r.conv1(image))))
         return r.layer4(r.layer3(r.layer2(r.layer1(x))))
 
+    def to_grid(self, features: torch.Tensor) -> torch.Tensor:
+        """B x 32 x h x w -> B x 32 x 8 x 8 (see the class docstring); the reference map is returned as is."""
+        size = tuple(features.shape[-2:])
+        if size == self.grid:
+            return features
+        if size[0] <= self.grid[0] and size[1] <= self.grid[1]:
+            return F.interpolate(features, size=self.grid, mode="nearest")
+        return F.adaptive_avg_pool2d(features, self.grid)
+
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        features = self.reduce(self.trunk(image))
-        if features.shape[-2:] != (8, 8):
-            raise ValueError(f"the visual encoder needs 256 x 256 images, got {tuple(image.shape[-2:])}")
-        return self.project(features.flatten(1))
+        return self.project(self.to_grid(self.reduce(self.trunk(image))).flatten(1))
 
 
 class MLP(nn.Sequential):

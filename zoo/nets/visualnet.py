@@ -8,6 +8,10 @@ Conv 3 x 3 2048 -> 256 + ReLU -> Conv 3 x 3 256 -> 32 + ReLU -> flatten 2048 -> 
 31.18 M parameters in total, 29.13 M used (section 11; the trajectory head runs in the published
 forward, so it counts as used, and it is returned here although nothing trains it yet).
 
+Reduced budget (not the paper's): ``input_recipes={"image": "resnet64"}`` (or ``resnet128``) reads a
+smaller image with the same parameters (the encoder brings its map to the 8 x 8 grid, see
+:class:`~zoo.nets.blocks.VisualEncoder`); about 16x (4x) less compute than at 256 x 256.
+
 Loss: the published code has none for this baseline; the zoo adds ``class_weight`` x cross-entropy
 on the drone class (0.1, AV-FDTI's weight) to the task's position loss. ``class_weight = 0`` turns it off.
 """
@@ -31,16 +35,18 @@ class VisualNet(TrajectoryNet):
             None leaves the trunk randomly initialised. Nothing is downloaded.
         num_classes: class logits (five drones + "no drone").
         class_weight: weight of the class cross-entropy auxiliary loss.
+        input_recipes: recipes replacing the reference ones, e.g. ``{"image": "resnet64"}`` (reduced budget).
     """
 
     inputs = {"image": "resnet256"}
     category = "supervised"
 
     def __init__(self, feature_dim: int = 256, resnet_weights: str | None = None, num_classes: int = NUM_CLASSES,
-                 class_weight: float = 0.1):
-        super().__init__(class_weight=class_weight)
+                 class_weight: float = 0.1, input_recipes: dict[str, str] | None = None):
+        super().__init__(class_weight=class_weight, input_recipes=input_recipes)
         self.encoder = VisualEncoder(feature_dim, resnet_weights)
         self.head = DetectNet(feature_dim, num_classes)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        self.check_inputs(inputs)
         return self.head(self.encoder(inputs["image"]))
