@@ -1,0 +1,62 @@
+"""The results.csv schema: atomic appends, schema checks, interrupted writes."""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks.results import COLUMNS, SCHEMA_VERSION, ResultsError, append_rows, latest, read_results
+
+ROW = {"kind": "model", "suite": "s", "job_id": "student-by_sequence-s0", "status": "ok", "model": "student",
+       "protocol": "by_sequence", "seed": 0, "E_ideal": 7.5, "E_dark": float("nan")}
+
+
+def test_rows_round_trip_with_empty_cells_for_what_does_not_apply(tmp_path):
+    path = tmp_path / "results.csv"
+    append_rows(path, [ROW])
+    append_rows(path, [{**ROW, "E_ideal": 6.0}, {"kind": "profile", "suite": "s", "job_id": "profile-student",
+                                                   "status": "ok", "model": "student", "gmacs": 0.0061}])
+    frame = read_results(path)
+    assert list(frame.columns) == COLUMNS and len(frame) == 3
+    assert frame["E_ideal"].tolist()[:2] == [7.5, 6.0]
+    assert frame["E_dark"].isna().all() and frame["gmacs"].isna().tolist() == [True, True, False]
+    assert (frame["schema_version"] == str(SCHEMA_VERSION)).all()
+    newest = latest(frame)
+    assert len(newest) == 2 and newest.loc[newest["kind"] == "model", "E_ideal"].item() == 6.0
+
+
+def test_unknown_columns_and_kinds_are_refused_before_anything_is_written(tmp_path):
+    path = tmp_path / "results.csv"
+    with pytest.raises(ResultsError, match=r"outside schema 1: \['E_idael'\]"):
+        append_rows(path, [{**ROW, "E_idael": 1.0}])
+    with pytest.raises(ResultsError, match="kind must be one of"):
+        append_rows(path, [{**ROW, "kind": "training"}])
+    assert not path.exists()
+
+
+def test_another_schema_or_a_missing_column_is_named(tmp_path):
+    path = tmp_path / "results.csv"
+    append_rows(path, [ROW])
+    text = path.read_text()
+    other = tmp_path / "other.csv"
+    other.write_text(text.replace(f"\n{SCHEMA_VERSION},", "\n0,", 1))
+    with pytest.raises(ResultsError, match=r"schema version\(s\) \['0'\]"):
+        read_results(other)
+    with pytest.raises(ResultsError, match=r"schema version\(s\) \['0'\]"):
+        append_rows(other, [ROW])  # a file of another schema is never extended
+    header, body = text.split("\n", 1)
+    missing = tmp_path / "missing.csv"
+    missing.write_text(header.replace(",E_ideal,", ",") + "\n")
+    with pytest.raises(ResultsError, match=r"missing column\(s\) \['E_ideal'\]"):
+        read_results(missing)
+
+
+def test_an_interrupted_last_line_is_dropped_and_the_file_stays_readable(tmp_path, caplog):
+    path = tmp_path / "results.csv"
+    append_rows(path, [ROW, {**ROW, "job_id": "other"}])
+    text = path.read_text()
+    path.write_text(text[: len(text) - 40])  # a writer killed mid-line
+    frame = read_results(path)
+    assert frame["job_id"].tolist() == ["student-by_sequence-s0"]
+    assert "incomplete" in caplog.text
+    append_rows(path, [{**ROW, "job_id": "third"}])  # the next append completes the file
+    assert read_results(path)["job_id"].tolist() == ["student-by_sequence-s0", "third"]
