@@ -1,0 +1,759 @@
+"""``aaute leaderboard``: render ``results.csv`` as the paper's comparison table, breakdowns and plots.
+
+Every number in the tables comes from ``results.csv`` (read by :func:`benchmarks.results.read_results`,
+the newest row of each job); plots may also read the per-window prediction files the rows point to.
+Layout (like Table I of the AAUTE paper): one row per method with its category, Dx Dy Dz E under
+ideal light and under darkness, mean E, GMACs, parameters, latency and, where smoothing ran, the
+GP-smoothed E; mean ± sample standard deviation over seeds; best value per column in bold, second
+underlined (lower is better everywhere; the constant-position row is shown but never ranked).
+One table per suite x protocol x data fingerprint, never mixed; the ``random_windows`` protocol is
+labelled leaky. Outputs: ``leaderboard.md``, ``leaderboard.csv``, ``leaderboard.tex`` (booktabs),
+one self-contained ``leaderboard.html`` and the PNG plots in ``plots/``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import html
+import logging
+import math
+import re
+import sys
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pandas as pd
+
+from benchmarks.results import (
+    BREAKDOWN,
+    DRONES,
+    LIGHTS,
+    METRICS,
+    PROTOCOLS,
+    RANGES,
+    ResultsError,
+    latest,
+    range_name,
+    read_results,
+)
+from datamodules.atomic import atomic_write
+
+if TYPE_CHECKING:
+    from benchmarks.plots import Plot
+
+log = logging.getLogger(__name__)
+
+CATEGORY_ORDER = ("supervised", "self-supervised", "non-learned", "reference")
+#: Row order within a category: the paper's Table I (supervised visual, audio, audio-visual models, then the
+#: student); models not listed follow the listed ones of their category, by method name.
+PAPER_ORDER = ("visualnet", "darknet", "audionet", "voranet", "asdnet", "avped", "avfdti", "student", "srp_phat")
+PROTOCOL_NOTES = {
+    "by_sequence": "whole flights are held out (no test flight is seen in training)",
+    "time_blocks": "contiguous time blocks of each flight are held out, with a purge gap of at least one window",
+    "random_windows": ("LEAKY, the papers' protocol: random windows are held out, so test windows overlap "
+                       "training windows and the errors are optimistic; not comparable with the other protocols"),
+}
+LEAKY_TITLE = "leaky: test windows overlap training windows"
+RANGE_LABELS = {range_name(*band): f"{band[0]:g}–{band[1]:g} m" if band[1] is not None else f"{band[0]:g}+ m"
+                for band in RANGES}
+MISSING = "–"
+LIGHT_TITLES = {"ideal": "ideal light", "dark": "darkness"}  #: group headers above the per-light columns
+VALUE_KEYS = [*METRICS, "E_avg", *BREAKDOWN]  #: aggregated over seeds: <key>_mean and <key>_std
+PROFILE_KEYS = ["params_total_M", "params_used_M", "gmacs", "gflops", "latency_ms_1t", "latency_iqr_ms_1t",
+                "throughput_1t", "profile_inputs"]
+TRUE = {"true", "1", "yes", "y"}
+
+
+class LeaderboardError(ValueError):
+    """``results.csv`` can be read but holds nothing to render (the message says why)."""
+
+
+@dataclass(frozen=True)
+class Column:
+    """A numeric column: ``key`` in the method statistics, its header and the group header above it."""
+
+    key: str
+    label: str
+    group: str = ""
+    digits: int | None = 2  #: decimals; None: about three significant digits
+    aggregated: bool = True  #: a per-seed metric (mean and std) rather than a per-model profile value
+    flat: str = ""  #: the header without a group header above it (default: label and group)
+
+    @property
+    def flat_label(self) -> str:
+        """The header in formats without grouped headers (Markdown)."""
+        return self.flat or f"{self.label} {self.group}".strip()
+
+
+@dataclass
+class Cell:
+    """A number with its spread over seeds and its rank mark ('best', 'second' or '')."""
+
+    mean: float
+    std: float
+    digits: int | None
+    mark: str = ""
+
+    def parts(self) -> tuple[str, str] | None:
+        """(mean, std) as displayed (std '' when there is one seed), or None when there is no value."""
+        if not np.isfinite(self.mean):
+            return None
+        decimals = _decimals(self.mean, self.digits)
+        std = f"{self.std:.{decimals}f}" if np.isfinite(self.std) else ""
+        return f"{self.mean:.{decimals}f}", std
+
+
+@dataclass
+class Row:
+    """One method of a table: its label cells (method, category) and numeric cells by column key."""
+
+    labels: list[str]
+    cells: dict[str, Cell]
+    reference: bool  #: the constant-position predictor (shown, never ranked)
+
+
+@dataclass
+class Table:
+    """A rendered-format-independent table: title, caption, alert, rows and notes (failed jobs)."""
+
+    anchor: str
+    title: str
+    caption: str
+    label_headers: list[str]
+    columns: list[Column]
+    rows: list[Row]
+    alert: str = ""
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Section:
+    """The tables of one suite x protocol x data fingerprint, the statistics behind them and their plots."""
+
+    number: int
+    suite: str
+    protocol: str
+    fingerprint: str
+    rows: pd.DataFrame
+    stats: pd.DataFrame
+    tables: list[Table]
+    plots: list[Plot] = field(default_factory=list)  # filled by render_leaderboard
+
+
+@dataclass
+class LeaderboardReport:
+    """What :func:`render_leaderboard` wrote: the files, the plots, the Markdown text and the warnings."""
+
+    markdown: str
+    files: dict[str, Path]
+    plots: list[Path]
+    warnings: list[str]
+
+    @property
+    def html(self) -> Path:
+        return self.files["html"]
+
+    @property
+    def paths(self) -> list[Path]:
+        """Every file written."""
+        return [*self.files.values(), *self.plots]
+
+
+# ----------------------------------------------------------------------------------------------- numbers
+
+
+def _decimals(value: float, digits: int | None) -> int:
+    if digits is not None:
+        return digits
+    if not np.isfinite(value) or value == 0:
+        return 2
+    return int(min(4, max(0, 2 - math.floor(math.log10(abs(value))))))
+
+
+def _plain(value: object) -> str:
+    """A cell of results.csv as text: NaN and empty as '', whole floats without decimals."""
+    if value is None or (isinstance(value, float) and not np.isfinite(value)):
+        return ""
+    if isinstance(value, (float, np.floating)):
+        return f"{value:g}"
+    return str(value).strip()
+
+
+def _unique(rows: pd.DataFrame, column: str) -> list[str]:
+    """The distinct non-empty values of ``column`` in order of appearance."""
+    return list(dict.fromkeys(text for text in map(_plain, rows[column]) if text))
+
+
+def _span(rows: pd.DataFrame, column: str) -> str:
+    """'5' or '3–5' for a numeric column, '' when it is empty."""
+    values = rows[column].dropna()
+    if values.empty:
+        return ""
+    low, high = values.min(), values.max()
+    return f"{low:g}" if low == high else f"{low:g}–{high:g}"
+
+
+# ----------------------------------------------------------------------------------------------- statistics
+
+
+def _method_key(row: pd.Series) -> str:
+    return "|".join((row["kind"], row["model"], row["method"], _plain(row["alpha"])))
+
+
+def _sort_key(row: pd.Series) -> tuple:
+    category = row["category"]
+    rank = CATEGORY_ORDER.index(category) if category in CATEGORY_ORDER else 2.5  # unknown: before reference
+    order = PAPER_ORDER.index(row["model"]) if row["model"] in PAPER_ORDER else len(PAPER_ORDER)
+    return rank, row["kind"] == "constant", order, row["display"]
+
+
+def method_stats(rows: pd.DataFrame, profiles: pd.DataFrame) -> pd.DataFrame:
+    """One row per method (kind x model x method x alpha): mean and std over seeds, profile values, order.
+
+    ``rows`` are the ok model and constant rows of one table; ``profiles`` the ok profile rows (the
+    last one of each model is used). Std is the sample standard deviation (ddof 1), NaN for one seed.
+    The result is sorted in the paper's order, constant last.
+    """
+    rows = rows.assign(E_avg=(rows["E_ideal"] + rows["E_dark"]) / 2, _key=rows.apply(_method_key, axis=1))
+    grouped = rows.groupby("_key", sort=False)
+    stats = grouped[["kind", "model", "method", "category", "alpha"]].first()
+    stats["n_seeds"] = grouped.size()
+    stats["seeds"] = grouped["seed"].agg(lambda s: ", ".join(_plain(v) for v in sorted(s.dropna().unique())))
+    stats = stats.join(grouped[VALUE_KEYS].mean().add_suffix("_mean"))
+    stats = stats.join(grouped[VALUE_KEYS].std(ddof=1).add_suffix("_std"))
+    first_prediction = (rows[rows["predictions_path"] != ""].sort_values("seed", kind="stable")
+                        .groupby("_key", sort=False)[["predictions_path", "seed"]].first())
+    stats = stats.join(first_prediction.rename(columns={"seed": "predictions_seed"}))
+    stats["predictions_path"] = stats["predictions_path"].fillna("")
+    profile = profiles.drop_duplicates("model", keep="last").set_index("model")[PROFILE_KEYS]
+    stats = stats.join(profile, on="model")
+    stats.loc[stats["kind"] == "constant", PROFILE_KEYS] = np.nan
+    stats["reference"] = (stats["kind"] == "constant") | (stats["category"] == "reference")
+    stats["display"] = [method or model for method, model in zip(stats["method"], stats["model"], strict=True)]
+    repeated = stats["display"].duplicated(keep=False)
+    stats.loc[repeated, "display"] = [f"{name} ({model}, α={_plain(alpha) or '-'})" for name, model, alpha
+                                      in stats.loc[repeated, ["display", "model", "alpha"]].itertuples(index=False)]
+    order = sorted(stats.index, key=lambda key: _sort_key(stats.loc[key]))
+    return stats.loc[order].reset_index(drop=True)
+
+
+def _build_rows(stats: pd.DataFrame, columns: Sequence[Column], labels: Callable[[pd.Series], list[str]]) -> list[Row]:
+    """Rows with their cells, marked: per column the best value bold, the second underlined.
+
+    Ranking uses the values as displayed (so ties look tied), lower is better, among the rows that are
+    not the reference; a column is marked when at least two rows compete, the second when three do.
+    """
+    rows = []
+    for _, stat in stats.iterrows():
+        cells = {}
+        for column in columns:
+            mean = stat[f"{column.key}_mean"] if column.aggregated else stat[column.key]
+            std = stat[f"{column.key}_std"] if column.aggregated else np.nan
+            cells[column.key] = Cell(float(mean), float(std), column.digits)
+        rows.append(Row(labels(stat), cells, bool(stat["reference"])))
+    for column in columns:
+        ranked = [(float(parts[0]), row.cells[column.key]) for row in rows if not row.reference
+                  and (parts := row.cells[column.key].parts()) is not None]
+        if len(ranked) < 2:
+            continue
+        distinct = sorted({value for value, _ in ranked})
+        for value, cell in ranked:
+            if value == distinct[0]:
+                cell.mark = "best"
+            elif len(ranked) >= 3 and len(distinct) > 1 and value == distinct[1]:
+                cell.mark = "second"
+    return rows
+
+
+# ----------------------------------------------------------------------------------------------- tables
+
+
+def _main_columns(stats: pd.DataFrame) -> list[Column]:
+    columns = [Column(f"{name}_{light}", name, LIGHT_TITLES[light], flat=f"{name} {light}")
+               for light in LIGHTS for name in ("Dx", "Dy", "Dz", "E")]
+    columns += [Column("E_avg", "mean E"), Column("gmacs", "GMACs", digits=None, aggregated=False),
+                Column("params_total_M", "params (M)", digits=None, aggregated=False),
+                Column("latency_ms_1t", "latency (ms)", digits=None, aggregated=False)]
+    smoothed = [Column(f"E_smooth_{light}", LIGHT_TITLES[light], "GP-smoothed E", flat=f"smoothed E {light}")
+                for light in LIGHTS]
+    return columns + _present(stats, smoothed)  # only where smoothing ran
+
+
+def _present(stats: pd.DataFrame, columns: list[Column]) -> list[Column]:
+    return [column for column in columns if stats[f"{column.key}_mean"].notna().any()]
+
+
+def _seeds_sentence(stats: pd.DataFrame, rows: pd.DataFrame) -> str:
+    seeds = [_plain(seed) for seed in sorted(rows["seed"].dropna().unique())]
+    listed = f"Seed{'s' if len(seeds) > 1 else ''} {', '.join(seeds) or 'not recorded'}"
+    counts = Counter(stats["n_seeds"])
+    if set(counts) == {1}:
+        return f"{listed}: one run per method, so no standard deviation."
+    usual = counts.most_common(1)[0][0]
+    others = "; ".join(f"{stat.display} {stat.n_seeds}" for stat in stats.itertuples() if stat.n_seeds != usual)
+    spread = f"{usual} seed{'s' if usual > 1 else ''} per method" + (f", except {others}" if others else "")
+    return f"{listed}: mean ± sample standard deviation over seeds ({spread})."
+
+
+def _joined(rows: pd.DataFrame, column: str, empty: str = "not recorded") -> str:
+    return "; ".join(_unique(rows, column)) or empty
+
+
+def _split_counts(rows: pd.DataFrame, what: str) -> str:
+    """'6/2/2' (train/val/test) per distinct combination in ``rows``."""
+    columns = [f"n_{split}_{what}" for split in ("train", "val", "test")]
+    combos = ("/".join(_plain(value) or "?" for value in counts) for counts in rows[columns].itertuples(index=False))
+    return "; ".join(dict.fromkeys(combos))
+
+
+def _caption(rows: pd.DataFrame, stats: pd.DataFrame, protocol: str) -> str:
+    """What a reader needs to judge the table: protocol, data, budget, compute convention, seeds, machine."""
+    parts = [f"Protocol {protocol}: {PROTOCOL_NOTES.get(protocol, 'not a known protocol')}."]
+    if suites := _unique(rows, "suite"):
+        parts.append(f"Suite {', '.join(suites)}.")
+    data = _joined(rows, "data", "")
+    parts.append(f"Data: {'/'.join(_unique(rows, 'data_kind')) or 'unknown'}{f' ({data})' if data else ''}, "
+                 f"fingerprint {', '.join(_unique(rows, 'data_fingerprint')) or 'not recorded'}; flights "
+                 f"train/val/test {_split_counts(rows, 'sequences')}, windows {_split_counts(rows, 'windows')}; "
+                 f"drones {_joined(rows, 'drones')}; light conditions {_joined(rows, 'lights')}.")
+    budget = [f"{label} {value}" for label, column in (
+        ("max epochs", "max_epochs"), ("train batches per epoch at most", "limit_train_batches"),
+        ("batch size", "batch_size"), ("epochs run", "epochs_run"), ("best epoch", "best_epoch"))
+        if (value := _span(rows, column))]
+    notes = _unique(rows, "budget_note")
+    parts.append(f"Training budget: {', '.join(budget) or 'not recorded'}{'; ' + '; '.join(notes) if notes else ''}.")
+    parts.append("GMACs (multiply-accumulates at batch 1; FLOPs = 2 × MACs), params and latency (median at "
+                 "batch 1, 1 thread) are profiled at each model's reference input shapes, whatever the training "
+                 "budget.")
+    parts.append(_seeds_sentence(stats, rows))
+    commit = ", ".join(value[:12] for value in _unique(rows, "git_commit")) or "not recorded"
+    dirty = " (dirty working tree)" if rows["git_dirty"].str.lower().isin(TRUE).any() else ""
+    parts.append(f"Machine: cpu {_joined(rows, 'cpu')}; gpu {_joined(rows, 'gpu', 'none')}; "
+                 f"threads {_joined(rows, 'threads')}. Commit {commit}{dirty}. "
+                 f"Software: {_joined(rows, 'versions')}.")
+    parts.append("Errors in metres: Dx, Dy, Dz mean absolute error per axis, E mean Euclidean error; "
+                 "mean E = (E ideal + E dark) / 2. Best per column in bold, second underlined, lower is better; "
+                 "the constant row does not compete.")
+    return " ".join(parts)
+
+
+def _failed_note(row: pd.Series) -> str:
+    who = row["method"] or row["model"] or row["kind"]
+    seed = f", seed {_plain(row['seed'])}" if _plain(row["seed"]) else ""
+    error = row["error"] or "no error recorded"
+    where = f" (log: {row['log_path']})" if row["log_path"] else ""
+    return f"{row['job_id']} ({row['status'] or 'no status'}) {who}{seed}: {error}{where}"
+
+
+def _section_tables(number: int, title: str, rows: pd.DataFrame, stats: pd.DataFrame, protocol: str,
+                    failed: pd.DataFrame) -> list[Table]:
+    leaky = f"; {LEAKY_TITLE}" if protocol == "random_windows" else ""
+    has_constant = (stats["kind"] == "constant").any()
+    alert = "" if has_constant else ("NO CONSTANT BASELINE: this table has no constant-position row, so it cannot "
+                                     "show whether the models learned anything (run the suite's constant jobs).")
+    main = Table(str(number), title, _caption(rows, stats, protocol), ["method", "category"], _main_columns(stats),
+                 [], alert, [_failed_note(row) for _, row in failed.iterrows()])
+    main.rows = _build_rows(stats, main.columns, lambda stat: [stat["display"], stat["category"]])
+    tables = [main]
+    breakdowns = (
+        ("a", "E by drone", "per drone type",
+         [Column(f"E_{light}_{drone}", drone, LIGHT_TITLES[light], flat=f"{drone} {light}")
+          for light in LIGHTS for drone in DRONES]),
+        ("b", "E by range", "per distance band of the drone from the rig origin",
+         [Column(f"E_{light}_{band}", label, LIGHT_TITLES[light], flat=f"{label} {light}")
+          for light in LIGHTS for band, label in RANGE_LABELS.items()]),
+    )
+    for letter, name, what, candidates in breakdowns:
+        columns = _present(stats, candidates)
+        if not columns:
+            continue
+        caption = (f"E (m; mean ± std over seeds) {what}, same runs as Table {number} (protocol {protocol}"
+                   f"{leaky}). Best per column in bold, second underlined; the constant row does not compete.")
+        table = Table(f"{number}{letter}", f"Table {number}{letter}: {name}, protocol {protocol}"
+                      f"{f' ({LEAKY_TITLE})' if leaky else ''}", caption,
+                      ["method"], columns, [], main.alert)
+        table.rows = _build_rows(stats, columns, lambda stat: [stat["display"]])
+        tables.append(table)
+    return tables
+
+
+def _section_order(key: tuple[str, str, str], first_seen: dict) -> tuple:
+    suite, protocol, _ = key
+    protocol_rank = PROTOCOLS.index(protocol) if protocol in PROTOCOLS else len(PROTOCOLS)
+    return first_seen[("suite", suite)], protocol_rank, protocol, first_seen[key]
+
+
+def build_sections(frame: pd.DataFrame) -> tuple[list[Section], pd.DataFrame]:
+    """The sections (one per suite x protocol x data fingerprint) and the failed rows no section claims."""
+    ok = frame[frame["status"] == "ok"]
+    entries = ok[ok["kind"].isin(["model", "constant"])]
+    profiles = ok[ok["kind"] == "profile"]
+    failed = frame[frame["status"] != "ok"]
+    keys = list(zip(entries["suite"], entries["protocol"], entries["data_fingerprint"], strict=True))
+    first_seen: dict = {}
+    for index, (suite, protocol, fingerprint) in enumerate(keys):
+        first_seen.setdefault(("suite", suite), index)
+        first_seen.setdefault((suite, protocol, fingerprint), index)
+    ordered = sorted(set(keys), key=lambda key: _section_order(key, first_seen))
+    several_suites = len({suite for suite, _, _ in ordered}) > 1
+    claimed = pd.Series(False, index=failed.index)
+    sections = []
+    for number, (suite, protocol, fingerprint) in enumerate(ordered, start=1):
+        mask = ((entries["suite"] == suite) & (entries["protocol"] == protocol)
+                & (entries["data_fingerprint"] == fingerprint))
+        rows = entries[mask]
+        same_protocol = [key for key in ordered if key[:2] == (suite, protocol)]
+        mine = (failed["suite"] == suite) & (failed["protocol"] == protocol) & ~claimed
+        if len(same_protocol) > 1:
+            mine &= failed["data_fingerprint"] == fingerprint
+        claimed |= mine
+        same_suite = profiles["suite"] == suite  # a model's profile from this suite wins over other suites'
+        stats = method_stats(rows, pd.concat([profiles[~same_suite], profiles[same_suite]]))
+        title = f"Table {number}: protocol {protocol}"
+        if protocol == "random_windows":
+            title += f" ({LEAKY_TITLE})"
+        title += f", {'/'.join(_unique(rows, 'data_kind')) or 'unknown'} data"
+        if len(same_protocol) > 1:
+            title += f" {fingerprint[:10] or '(no fingerprint)'}"
+        if several_suites:
+            title += f", suite {suite or '(none)'}"
+        tables = _section_tables(number, title, rows, stats, protocol, failed[mine])
+        sections.append(Section(number, suite, protocol, fingerprint, rows, stats, tables))
+    return sections, failed[~claimed]
+
+
+# ----------------------------------------------------------------------------------------------- formats
+
+
+def _groups(columns: Sequence[Column]) -> list[tuple[str, int]]:
+    """Runs of consecutive columns that share a group header: (group, width)."""
+    runs: list[tuple[str, int]] = []
+    for column in columns:
+        if runs and runs[-1][0] == column.group:
+            runs[-1] = (column.group, runs[-1][1] + 1)
+        else:
+            runs.append((column.group, 1))
+    return runs
+
+
+def _md_text(text: str) -> str:
+    return re.sub(r"([\\`*|<>\[\]])", r"\\\1", text)
+
+
+def _md_cell(cell: Cell) -> str:
+    parts = cell.parts()
+    if parts is None:
+        return MISSING
+    text = f"{parts[0]} ± {parts[1]}" if parts[1] else parts[0]
+    return {"best": f"**{text}**", "second": f"<u>{text}</u>"}.get(cell.mark, text)
+
+
+def markdown_table(table: Table) -> str:
+    """A table as GitHub Markdown: heading, caption, the grid and its notes."""
+    lines = [f"## {_md_text(table.title)}", ""]
+    if table.alert:
+        lines += [f"**{_md_text(table.alert)}**", ""]
+    lines += [f"*{_md_text(table.caption)}*", ""]
+    headers = [*table.label_headers, *(column.flat_label for column in table.columns)]
+    lines.append("| " + " | ".join(headers) + " |")
+    lines.append("|" + "|".join([":--"] * len(table.label_headers) + ["--:"] * len(table.columns)) + "|")
+    for row in table.rows:
+        cells = [_md_text(label) for label in row.labels] + [_md_cell(row.cells[c.key]) for c in table.columns]
+        lines.append("| " + " | ".join(cells) + " |")
+    if table.notes:
+        lines += ["", "Failed jobs (no numbers):", ""] + [f"- {_md_text(note)}" for note in table.notes]
+    return "\n".join(lines) + "\n"
+
+
+LATEX_SPECIAL = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#", "_": r"\_",
+                 "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}", "^": r"\textasciicircum{}",
+                 "<": r"\textless{}", ">": r"\textgreater{}", "±": r"$\pm$", "×": r"$\times$", "α": r"$\alpha$",
+                 "–": "--", "—": "---", "≥": r"$\geq$", "≤": r"$\leq$"}
+_LATEX_PATTERN = re.compile("|".join(re.escape(char) for char in LATEX_SPECIAL))
+
+
+def latex_escape(text: str) -> str:
+    """``text`` safe in LaTeX text mode (special characters escaped, a few Unicode signs as math)."""
+    return _LATEX_PATTERN.sub(lambda match: LATEX_SPECIAL[match.group()], text)
+
+
+def _latex_cell(cell: Cell) -> str:
+    parts = cell.parts()
+    if parts is None:
+        return "--"
+    text = f"{parts[0]} $\\pm$ {parts[1]}" if parts[1] else parts[0]
+    return {"best": f"\\textbf{{{text}}}", "second": f"\\underline{{{text}}}"}.get(cell.mark, text)
+
+
+def latex_table(table: Table) -> str:
+    """A table as a booktabs ``table*`` (needs ``\\usepackage{booktabs}``)."""
+    lines = ["\\begin{table*}[t]", "\\centering", "\\small",
+             f"\\caption{{{latex_escape(table.title)}. {latex_escape(table.alert + ' ' if table.alert else '')}"
+             f"{latex_escape(table.caption)}}}",
+             f"\\label{{tab:leaderboard-{table.anchor}}}",
+             f"\\begin{{tabular}}{{{'l' * len(table.label_headers)}{'r' * len(table.columns)}}}", "\\toprule"]
+    groups = _groups(table.columns)
+    if any(group for group, _ in groups):
+        cells, rules, start = [""] * len(table.label_headers), [], len(table.label_headers) + 1
+        for group, span in groups:
+            cells.append(f"\\multicolumn{{{span}}}{{c}}{{{latex_escape(group)}}}" if group else " & ".join([""] * span))
+            if group:
+                rules.append(f"\\cmidrule(lr){{{start}-{start + span - 1}}}")
+            start += span
+        lines += [" & ".join(cells) + " \\\\", "".join(rules)]
+        headers = [*table.label_headers, *(column.label for column in table.columns)]
+    else:
+        headers = [*table.label_headers, *(column.flat_label for column in table.columns)]
+    lines += [" & ".join(latex_escape(header) for header in headers) + " \\\\", "\\midrule"]
+    previous_reference = False
+    for index, row in enumerate(table.rows):
+        if row.reference and not previous_reference and index:
+            lines.append("\\midrule")
+        previous_reference = row.reference
+        cells = [latex_escape(label) for label in row.labels] + [_latex_cell(row.cells[c.key]) for c in table.columns]
+        lines.append(" & ".join(cells) + " \\\\")
+    lines += ["\\bottomrule", "\\end{tabular}"]
+    if table.notes:
+        lines.append(f"\\par\\smallskip\\footnotesize Failed jobs (no numbers): "
+                     f"{'; '.join(latex_escape(note) for note in table.notes)}.")
+    lines.append("\\end{table*}")
+    return "\n".join(lines) + "\n"
+
+
+def _html_cell(cell: Cell) -> str:
+    parts = cell.parts()
+    if parts is None:
+        return MISSING
+    text = f"{parts[0]}&nbsp;±&nbsp;{parts[1]}" if parts[1] else parts[0]
+    return {"best": f"<b>{text}</b>", "second": f"<u>{text}</u>"}.get(cell.mark, text)
+
+
+def html_table(table: Table) -> str:
+    """A table as an HTML ``<table>`` with grouped headers, preceded by its heading and caption."""
+    esc = html.escape
+    out = [f'<h2 id="table-{esc(table.anchor)}">{esc(table.title)}</h2>']
+    if table.alert:
+        out.append(f'<p class="alert">{esc(table.alert)}</p>')
+    out += [f'<p class="caption">{esc(table.caption)}</p>', "<table>", "<thead>"]
+    groups = _groups(table.columns)
+    if any(group for group, _ in groups):
+        top = [f'<th rowspan="2">{esc(header)}</th>' for header in table.label_headers]
+        below, start = [], 0
+        for group, span in groups:
+            run = table.columns[start:start + span]
+            start += span
+            if group:
+                top.append(f'<th colspan="{span}" class="group">{esc(group)}</th>')
+                below += [f"<th>{esc(column.label)}</th>" for column in run]
+            else:
+                top += [f'<th rowspan="2">{esc(column.label)}</th>' for column in run]
+        out += ["<tr>" + "".join(top) + "</tr>", "<tr>" + "".join(below) + "</tr>"]
+    else:
+        headers = [*table.label_headers, *(column.flat_label for column in table.columns)]
+        out.append("<tr>" + "".join(f"<th>{esc(header)}</th>" for header in headers) + "</tr>")
+    out += ["</thead>", "<tbody>"]
+    for row in table.rows:
+        cells = "".join(f'<td class="label">{esc(label)}</td>' for label in row.labels)
+        cells += "".join(f"<td>{_html_cell(row.cells[column.key])}</td>" for column in table.columns)
+        out.append(f'<tr class="{"reference" if row.reference else "method"}">{cells}</tr>')
+    out += ["</tbody>", "</table>"]
+    if table.notes:
+        out.append('<p class="failed">Failed jobs (no numbers):</p><ul class="failed">'
+                   + "".join(f"<li>{esc(note)}</li>" for note in table.notes) + "</ul>")
+    return "\n".join(out)
+
+
+CSS = """
+body { font-family: system-ui, -apple-system, "Segoe UI", sans-serif; margin: 2em auto; max-width: 1400px;
+       padding: 0 1em; color: #222; line-height: 1.45; }
+h1 { font-size: 1.6em; } h2 { font-size: 1.2em; margin-top: 2.2em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 0.8em 0; font-size: 0.88em; font-variant-numeric: tabular-nums; }
+th, td { padding: 0.25em 0.6em; border-bottom: 1px solid #e4e4e4; white-space: nowrap; }
+th { background: #f3f5f7; text-align: center; } th.group { border-bottom: 1px solid #999; }
+td { text-align: right; } td.label { text-align: left; }
+tbody tr:nth-child(even) { background: #fafbfc; }
+tr.reference td { font-style: italic; color: #555; border-top: 2px solid #bbb; background: #f6f6f0; }
+p.caption { font-size: 0.9em; color: #444; max-width: 100em; }
+p.alert { color: #a00; font-weight: bold; border-left: 4px solid #a00; padding-left: 0.6em; }
+ul.failed, p.failed { color: #8a4b00; font-size: 0.9em; }
+figure { margin: 1.2em 0; } figure img { max-width: 100%; border: 1px solid #ddd; }
+figcaption { font-size: 0.85em; color: #555; }
+.warnings { color: #8a4b00; font-size: 0.9em; }
+"""
+
+
+def _main_section(sections: Sequence[Section]) -> Section:
+    return next((section for section in sections if section.protocol == "by_sequence"), sections[0])
+
+
+# ----------------------------------------------------------------------------------------------- documents
+
+
+def _csv_frame(sections: Sequence[Section]) -> pd.DataFrame:
+    leading = ["table", "suite", "protocol", "data_fingerprint", "data_kind", "method", "model", "kind",
+               "category", "alpha", "n_seeds", "seeds"]
+    values = [f"{key}_{part}" for key in VALUE_KEYS for part in ("mean", "std")]
+    frames = []
+    for section in sections:
+        stats = section.stats.assign(table=section.number, suite=section.suite, protocol=section.protocol,
+                                     data_fingerprint=section.fingerprint,
+                                     data_kind="/".join(_unique(section.rows, "data_kind")),
+                                     method=section.stats["display"])
+        frames.append(stats[leading + values + PROFILE_KEYS])
+    return pd.concat(frames, ignore_index=True)
+
+
+def _intro(source: str, frame: pd.DataFrame, sections: Sequence[Section], suite: str | None) -> str:
+    ok = int((frame["status"] == "ok").sum())
+    scope = f" (suite {suite})" if suite else ""
+    return (f"Rendered from {source}{scope} alone: {len(frame)} jobs ({ok} ok, {len(frame) - ok} not ok), "
+            f"{len(sections)} comparison table(s), one per protocol and data set; tables of different protocols "
+            "are never mixed. Errors in metres, mean ± sample standard deviation over seeds; per numeric column "
+            "the best value is bold and the second underlined (lower is better; the constant-position row is "
+            "shown in every table and does not compete).")
+
+
+def _markdown(intro: str, sections: Sequence[Section], orphans: Sequence[str], out: Path) -> str:
+    parts = ["# Leaderboard", "", _md_text(intro), ""]
+    for section in sections:
+        for table in section.tables:
+            parts += [markdown_table(table)]
+        if section.plots:
+            parts += [f"Plots of Table {section.number}:", ""]
+            parts += [f"![{_md_text(plot.caption)}]({plot.path.relative_to(out).as_posix()})\n"
+                      for plot in section.plots]
+    if orphans:
+        parts += ["## Failed jobs outside the tables", ""] + [f"- {_md_text(note)}" for note in orphans] + [""]
+    return "\n".join(parts).rstrip("\n") + "\n"
+
+
+def _latex(intro: str, sections: Sequence[Section], orphans: Sequence[str]) -> str:
+    parts = ["% Leaderboard rendered from results.csv by 'aaute leaderboard'; needs \\usepackage{booktabs}.",
+             f"% {intro}", ""]
+    for section in sections:
+        parts += [latex_table(table) for table in section.tables]
+    if orphans:
+        parts.append("% Failed jobs outside the tables: " + "; ".join(note.replace("\n", " ") for note in orphans))
+    return "\n".join(parts)
+
+
+def _html(intro: str, sections: Sequence[Section], orphans: Sequence[str], warnings: Sequence[str]) -> str:
+    esc = html.escape
+    body = ["<h1>Leaderboard</h1>", f"<p>{esc(intro)}</p>"]
+    for section in sections:
+        body += [html_table(table) for table in section.tables]
+        for plot in section.plots:
+            data = base64.b64encode(plot.png).decode("ascii")
+            body.append(f'<figure><img alt="{esc(plot.caption)}" src="data:image/png;base64,{data}">'
+                        f"<figcaption>{esc(plot.caption)}</figcaption></figure>")
+    if orphans:
+        body.append("<h2>Failed jobs outside the tables</h2><ul class=\"failed\">"
+                    + "".join(f"<li>{esc(note)}</li>" for note in orphans) + "</ul>")
+    if warnings:
+        body.append('<h2>Skipped plots</h2><ul class="warnings">'
+                    + "".join(f"<li>{esc(warning)}</li>" for warning in warnings) + "</ul>")
+    return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
+            "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">\n"
+            f"<title>Leaderboard</title>\n<style>{CSS}</style>\n</head>\n<body>\n"
+            + "\n".join(body) + "\n</body>\n</html>\n")
+
+
+def _select(frame: pd.DataFrame, path: Path, suite: str | None) -> pd.DataFrame:
+    if frame.empty:
+        raise LeaderboardError(f"{path}: no result rows yet (run 'aaute benchmark' first)")
+    if suite is not None:
+        known = list(dict.fromkeys(frame["suite"]))
+        if suite not in known:
+            raise LeaderboardError(f"{path}: unknown suite {suite!r}; suites in this file: "
+                                   f"{', '.join(repr(name) for name in known)}")
+        frame = frame[frame["suite"] == suite]
+    usable = frame[(frame["status"] == "ok") & frame["kind"].isin(["model", "constant"])]
+    if usable.empty:
+        failed = int((frame["status"] != "ok").sum())
+        raise LeaderboardError(f"{path}: no successful model or constant rows to tabulate ({failed} job(s) not ok; "
+                               "their rows name the error and the log)")
+    return frame
+
+
+def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots: bool = True) -> LeaderboardReport:
+    """Render ``results`` (a results.csv) into ``out``: Markdown, CSV, LaTeX, one HTML page and PNG plots.
+
+    Args:
+        results: the results.csv written by ``aaute benchmark``.
+        out: the output folder (created).
+        suite: only this suite's rows (default: all, one table per suite x protocol x data fingerprint).
+        plots: draw the figures (prediction files that are missing skip their plot with a warning).
+
+    Raises:
+        ResultsError: the file is not a results.csv of this schema (missing columns, other version).
+        LeaderboardError: nothing to render (no rows, no successful rows, unknown suite).
+    """
+    results, out = Path(results), Path(out)
+    frame = _select(latest(read_results(results)), results, suite)
+    sections, orphans = build_sections(frame)
+    warnings: list[str] = []
+
+    def warn(message: str) -> None:
+        warnings.append(message)
+        log.warning("%s", message)
+
+    if plots:
+        from benchmarks.plots import SectionPlotter  # matplotlib is imported only when plots are drawn
+
+        plotter = SectionPlotter(results.parent, out / "plots", warn)
+        main = _main_section(sections)
+        for section in sections:
+            section.plots = plotter.draw(section.stats, section.number, section.protocol, RANGE_LABELS,
+                                         trajectories=section is main)
+    orphan_notes = [_failed_note(row) for _, row in orphans.iterrows()]
+    intro = _intro(results.name, frame, sections, suite)
+    markdown = _markdown(intro, sections, orphan_notes, out)
+    files = {"markdown": out / "leaderboard.md", "csv": out / "leaderboard.csv", "latex": out / "leaderboard.tex",
+             "html": out / "leaderboard.html"}
+    texts = {"markdown": markdown, "latex": _latex(intro, sections, orphan_notes),
+             "csv": _csv_frame(sections).to_csv(index=False, float_format="%.6g", lineterminator="\n"),
+             "html": _html(intro, sections, orphan_notes, warnings)}
+    for name, path in files.items():
+        with atomic_write(path) as tmp:
+            tmp.write_text(texts[name], encoding="utf-8")
+    plot_paths = [plot.path for section in sections for plot in section.plots]
+    return LeaderboardReport(markdown, files, plot_paths, warnings)
+
+
+# ----------------------------------------------------------------------------------------------- command line
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``aaute leaderboard``."""
+    parser.add_argument("results", type=Path, help="results.csv written by 'aaute benchmark'")
+    parser.add_argument("--out", type=Path, help="output folder (default: 'leaderboard' beside RESULTS)")
+    parser.add_argument("--suite", help="only this suite's rows (default: every suite, each in its own tables)")
+    parser.add_argument("--no-plots", action="store_true", help="write the tables only")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Render, print the Markdown tables and the HTML page's path; a bad input is one line and exit code 2."""
+    out = args.out if args.out is not None else Path(args.results).parent / "leaderboard"
+    try:
+        report = render_leaderboard(args.results, out, suite=args.suite, plots=not args.no_plots)
+    except (ResultsError, LeaderboardError, OSError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    sys.stdout.write(report.markdown)
+    print(f"\nHTML page: {report.html}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="aaute leaderboard", description=__doc__.splitlines()[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
