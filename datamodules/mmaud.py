@@ -4,7 +4,9 @@ A sample is a window of sensor data ending at a label time (causal), with every 
 or the evaluation may need: ground-truth xyz, pseudo-label xyz, a validity flag for each (a window
 inside a teacher gap has no pseudo-label), drone class, visibility in the camera, time and
 sequence. Models differ only in which inputs they consume and with which recipe
-(:mod:`datamodules.features`); the inputs are computed once into a memory-mapped cache.
+(:mod:`datamodules.features`); the inputs are computed once into a memory-mapped cache. On a
+recording with audio only windows whose audio lies inside it are used, whatever the model consumes,
+so audio, visual and audio-visual models are scored on the same windows.
 
 The split is an evaluation protocol (:mod:`datamodules.splits`): ``by_sequence`` (default: whole
 recordings, explicit lists or seeded and stratified by drone), ``time_blocks`` (contiguous blocks of
@@ -376,13 +378,13 @@ class MMAUDDataModule(L.LightningDataModule):
     def _samples(self, path: Path, recording: Recording) -> SequenceSamples | None:
         times = self._label_times(recording)
         keep = np.ones(times.size, dtype=bool)
-        if self.audio_recipe is not None:
-            audio = recording.audio
-            if audio is None:
-                raise RecordingError(f"{path}: the model needs audio ('{self.audio_recipe.name}') but the "
-                                     f"recording has none")
+        audio = recording.audio
+        if self.audio_recipe is not None and audio is None:
+            raise RecordingError(f"{path}: the model needs audio ('{self.audio_recipe.name}') but the "
+                                 f"recording has none")
+        if audio is not None:  # every model gets the same windows: those with their audio inside the recording
             span = self.hparams.window_seconds
-            if self.hparams.faithful_window_order:
+            if self.hparams.faithful_window_order and self.audio_recipe is not None:
                 span = self.audio_recipe.chunk_seconds * (1 - min(self.audio_recipe.chunk_offsets))
             inside = (times - span >= audio.t0 - 1e-9) & (times <= audio.t_end + 1e-9)
             self._count_skip("window not inside the audio", int((keep & ~inside).sum()))

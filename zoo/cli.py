@@ -130,11 +130,8 @@ def _cmd_smooth(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="aaute", description=__doc__.splitlines()[0])
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def add_commands(sub: argparse._SubParsersAction) -> None:
+    """The zoo's and the datamodules' argparse subcommands (simulate, info, convert, label, smooth)."""
     sim = sub.add_parser("simulate", help="simulate MMAUD-like recordings (MCAP)")
     sim.add_argument("--out", required=True, type=Path, help="output directory")
     sim.add_argument("--sequences", type=int, default=5)
@@ -194,37 +191,67 @@ def build_parser() -> argparse.ArgumentParser:
     smooth.add_argument("--fit", action="store_true", help="fit the hyperparameters by marginal likelihood first")
     smooth.add_argument("--horizon", type=float, help="flag query times farther than this (s) from any data")
     smooth.set_defaults(func=_cmd_smooth)
+
+
+def build_parser(extra: Callable[[argparse._SubParsersAction], None] | None = None) -> argparse.ArgumentParser:
+    """The ``aaute`` parser: the zoo's subcommands plus those ``extra`` adds (the benchmarks' own)."""
+    parser = argparse.ArgumentParser(prog="aaute", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_commands(sub)
+    if extra is not None:
+        extra(sub)
     return parser
 
 
 LIGHTNING_COMMANDS = ("fit", "validate", "test", "predict")
 
 
-def lightning_main(argv: Sequence[str] | None) -> None:
-    """``aaute fit|validate|test|predict``: LightningCLI over TrajectoryTask and the MMAUD DataModule."""
+def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: bool = True,
+                  exit_on_error: bool = True):
+    """LightningCLI over TrajectoryTask and the MMAUD DataModule, as ``aaute fit|validate|test|predict`` builds it.
+
+    ``argv`` None reads ``sys.argv``. With ``run=False`` the argument list has no subcommand and the
+    caller drives ``cli.trainer`` (the benchmark runner does); with ``instantiate=False`` the
+    arguments are only parsed and checked (``cli.config``), nothing is built. With
+    ``exit_on_error=False`` a bad argument raises ``argparse.ArgumentError`` instead of exiting.
+    """
     from lightning.pytorch.cli import LightningCLI
 
     from datamodules.mmaud import MMAUDDataModule
     from zoo.task import TrajectoryTask
 
-    LightningCLI(
+    class _CLI(LightningCLI):
+        def instantiate_classes(self) -> None:
+            if instantiate:
+                super().instantiate_classes()
+
+    return _CLI(
         TrajectoryTask,
         MMAUDDataModule,
         subclass_mode_model=True,
         subclass_mode_data=True,
         args=None if argv is None else list(argv),  # None: LightningCLI reads sys.argv itself
+        run=run,
         save_config_kwargs={"overwrite": True},
-        parser_kwargs={"prog": "aaute"},
+        parser_kwargs={"prog": "aaute", "exit_on_error": exit_on_error},
     )
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def lightning_main(argv: Sequence[str] | None) -> None:
+    """``aaute fit|validate|test|predict``."""
+    lightning_cli(argv)
+
+
+def main(argv: Sequence[str] | None = None,
+         extra: Callable[[argparse._SubParsersAction], None] | None = None) -> int:
+    """Run one ``aaute`` subcommand; ``extra`` adds subcommands (see :mod:`benchmarks.cli`)."""
     given = argv
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in LIGHTNING_COMMANDS:
         lightning_main(given)
         return 0
-    args = build_parser().parse_args(argv)
+    args = build_parser(extra).parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     func: Callable[[argparse.Namespace], int] = args.func

@@ -82,6 +82,8 @@ class TrajectoryTask(L.LightningModule):
         self.skipped_batches = 0
         self._checked_inputs = False
         self._predictions: dict[int, list[dict[str, np.ndarray]]] = {}
+        #: GP-smoothed test positions of the last test run: loader index -> sequence index -> N x 3
+        self.smoothed_predictions: dict[int, dict[int, np.ndarray]] = {}
 
     # ------------------------------------------------------------------------------ helpers
 
@@ -199,6 +201,7 @@ class TrajectoryTask(L.LightningModule):
 
     def on_test_epoch_start(self) -> None:
         self._predictions = {}
+        self.smoothed_predictions = {}
 
     def on_test_epoch_end(self) -> None:
         self._log_metrics("test|")
@@ -251,9 +254,10 @@ class TrajectoryTask(L.LightningModule):
         smoother = GPSmoother(**(self.hparams.smoother or {}))
         for dataloader_idx in sorted(self._predictions):
             metric = TrajectoryError().to(self.device)
-            for sequence in self.sequence_predictions(dataloader_idx).values():
+            kept = self.smoothed_predictions.setdefault(dataloader_idx, {})
+            for index, sequence in self.sequence_predictions(dataloader_idx).items():
                 t = sequence["time"]
-                smoothed = smoother.smooth(t, sequence["position"], t).mean
+                smoothed = kept[index] = np.asarray(smoother.smooth(t, sequence["position"], t).mean)
                 metric.update(torch.from_numpy(np.asarray(smoothed)), torch.from_numpy(sequence["gt"]),
                               torch.from_numpy(sequence["gt_valid"]))
             light = self._light("test", dataloader_idx)

@@ -1,0 +1,260 @@
+"""What one benchmark job does in its own process, returning one ``results.csv`` row.
+
+- ``model``: builds the job's LightningCLI (the same configs and code path as ``aaute fit`` /
+  ``aaute test``), fits, tests the checkpoint with the lowest ``val_loss`` under every light
+  condition, and writes the per-window test predictions (raw and GP-smoothed) beside its checkpoints;
+- ``constant``: the constant-position predictor, the mean training target (ground truth or
+  pseudo-label) of the same split, scored on the same test windows;
+- ``profile``: :func:`benchmarks.profiler.profile_model` at the model's reference shapes.
+"""
+
+from __future__ import annotations
+
+import datetime
+import logging
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from benchmarks.results import DRONES, RANGES, range_name
+from benchmarks.suite import JobSpec
+from datamodules.atomic import atomic_write
+
+log = logging.getLogger(__name__)
+
+PREDICTION_COLUMNS = ["sequence_id", "recording_id", "drone", "light", "timestamp", "x", "y", "z",
+                      "gt_x", "gt_y", "gt_z", "gt_valid", "smooth_x", "smooth_y", "smooth_z"]
+
+
+def provenance(threads: int) -> dict[str, Any]:
+    """Where and with what a row was made: commit, versions, machine."""
+    import lightning
+    import torch
+
+    repo = Path(__file__).resolve().parents[1]
+
+    def git(*args: str) -> str:
+        try:
+            return subprocess.run(["git", *args], cwd=repo, capture_output=True, text=True, timeout=10,
+                                  check=True).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    commit = git("rev-parse", "HEAD")
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no")) if commit else None
+    try:
+        from importlib.metadata import version
+
+        aaute = version("aaute")
+    except Exception:  # not installed as a distribution
+        aaute = "unknown"
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else ""
+    return {"git_commit": commit or "unknown", "git_dirty": dirty, "cpu": f"{cpu} ({os.cpu_count()} cores)",
+            "gpu": gpu, "threads": threads,
+            "versions": f"aaute={aaute};torch={torch.__version__};lightning={lightning.__version__};"
+                        f"python={platform.python_version()}"}
+
+
+def _base_row(job: JobSpec) -> dict[str, Any]:
+    return {"kind": job.kind, "suite": job.suite, "job_id": job.job_id, "status": "ok", "model": job.model,
+            "method": job.method, "category": job.category, "protocol": job.protocol, "seed": job.seed,
+            "budget_note": job.budget_note, "config_hash": job.config_hash, "data": job.data.get("description"),
+            "data_kind": job.data.get("kind"), "data_root": job.data.get("root"),
+            "data_fingerprint": job.data.get("fingerprint"),
+            "started_at": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")}
+
+
+def run_job(job: JobSpec) -> dict[str, Any]:
+    """Run ``job`` in this process and return its result row (raises on failure)."""
+    import torch
+
+    torch.set_num_threads(job.threads)
+    sys.argv = sys.argv[:1]  # the launcher's own arguments are not LightningCLI's
+    Path(job.job_dir).mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    row = _base_row(job)
+    if job.kind == "model":
+        row.update(_train_and_test(job))
+    elif job.kind == "constant":
+        row.update(_constant(job))
+    elif job.kind == "profile":
+        from benchmarks.profiler import profile_model
+
+        row.update(profile_model(job.model, **job.options))
+    else:
+        raise ValueError(f"unknown job kind {job.kind!r}")
+    row.update(provenance(job.threads))
+    row["wall_time_s"] = time.perf_counter() - start
+    return row
+
+
+# ---------------------------------------------------------------------------------------------- data
+
+
+def split_counts(datamodule) -> dict[str, Any]:
+    """Recordings and windows per split, and what the data holds, as result columns."""
+    row: dict[str, Any] = {}
+    drones: set[str] = set()
+    for split in ("train", "val", "test"):
+        pieces = datamodule.sequences.get(split, [])
+        recordings = {getattr(p, "recording_id", p.sequence_id) for p in pieces}
+        row[f"n_{split}_sequences"] = len(recordings)
+        row[f"n_{split}_windows"] = sum(len(p) for p in pieces)
+        drones.update(p.drone for p in pieces if p.drone)
+    row["drones"] = ",".join(sorted(drones))
+    row["lights"] = ",".join(datamodule.test_lights)
+    return row
+
+
+def _sequence_table(datamodule) -> list[tuple[str, str, str]]:
+    """(sequence id, recording id, drone) in the order batches index sequences."""
+    return [(p.sequence_id, getattr(p, "recording_id", p.sequence_id), p.drone or "")
+            for split in ("train", "val", "test") for p in datamodule.sequences.get(split, [])]
+
+
+def breakdown(frame: pd.DataFrame, column: str = "position") -> dict[str, float]:
+    """E per light x drone and per light x range band (the drone's distance from the rig origin)."""
+    row: dict[str, float] = {}
+    valid = frame[frame["gt_valid"] == 1]
+    gt = valid[["gt_x", "gt_y", "gt_z"]].to_numpy()
+    error = np.linalg.norm(valid[["x", "y", "z"]].to_numpy() - gt, axis=1)
+    distance = np.linalg.norm(gt, axis=1)
+    for light in valid["light"].unique():
+        in_light = (valid["light"] == light).to_numpy()
+        for drone in DRONES:
+            rows = in_light & (valid["drone"] == drone).to_numpy()
+            if rows.any():
+                row[f"E_{light}_{drone}"] = float(error[rows].mean())
+        for low, high in RANGES:
+            rows = in_light & (distance >= low) & (distance < (np.inf if high is None else high))
+            if rows.any():
+                row[f"E_{light}_{range_name(low, high)}"] = float(error[rows].mean())
+    return row
+
+
+def _write_predictions(path: Path, frame: pd.DataFrame) -> str:
+    with atomic_write(path) as tmp:
+        frame[PREDICTION_COLUMNS].to_csv(tmp, index=False, float_format="%.4f")
+    return str(path)
+
+
+# ---------------------------------------------------------------------------------------------- jobs
+
+
+def _train_and_test(job: JobSpec) -> dict[str, Any]:
+    from zoo.cli import lightning_cli
+
+    job_dir = Path(job.job_dir)
+    args = [*job.cli_args, "--trainer.default_root_dir", str(job_dir), "--trainer.enable_progress_bar", "false",
+            "--trainer.logger", "lightning.pytorch.loggers.CSVLogger",
+            "--trainer.logger.save_dir", str(job_dir), "--trainer.logger.name", "",
+            "--trainer.logger.version", ""]  # metrics.csv and checkpoints/ directly in the job folder
+    cli = lightning_cli(args, run=False)
+    trainer, task, datamodule = cli.trainer, cli.model, cli.datamodule
+    trainer.fit(task, datamodule=datamodule)
+    checkpoint = trainer.checkpoint_callback
+    best = getattr(checkpoint, "best_model_path", "") or ""
+    epochs_run = trainer.current_epoch
+    trainer.test(task, datamodule=datamodule, ckpt_path=best or "last", verbose=False)
+    metrics = {name: float(value) for name, value in trainer.callback_metrics.items()}
+    reduced = task.net.reduced_settings() if hasattr(task.net, "reduced_settings") else {}
+    notes = [job.budget_note] if job.budget_note else []
+    if reduced:
+        notes.append("reduced-size adapters: " + ", ".join(f"{k} {v}" for k, v in reduced.items()))
+    limit = trainer.limit_train_batches
+    row: dict[str, Any] = {"alpha": task.hparams.alpha, "max_epochs": trainer.max_epochs,
+                           "limit_train_batches": None if limit == 1.0 else limit, "epochs_run": epochs_run,
+                           "batch_size": datamodule.hparams.batch_size, "checkpoint_path": best or "last",
+                           "budget_note": "; ".join(notes)}
+    if best:
+        import torch
+
+        row["best_epoch"] = torch.load(best, map_location="cpu", weights_only=True)["epoch"]
+    for light in datamodule.test_lights:
+        for name in ("Dx", "Dy", "Dz", "E", "RMSE"):
+            row[f"{name}_{light}"] = metrics.get(f"test_{name}_{light}")
+        row[f"E_smooth_{light}"] = metrics.get(f"test_E_smooth_{light}")
+    row.update(split_counts(datamodule))
+    frame = _prediction_frame(task, datamodule)
+    row.update(breakdown(frame))
+    row["predictions_path"] = _write_predictions(job_dir / "predictions.csv", frame)
+    return row
+
+
+def _prediction_frame(task, datamodule) -> pd.DataFrame:
+    """Every test window of the last test run: prediction, ground truth and smoothed position."""
+    sequences = _sequence_table(datamodule)
+    parts = []
+    for index, light in enumerate(datamodule.test_lights):
+        smoothed = task.smoothed_predictions.get(index, {})
+        for seq_index, seq in task.sequence_predictions(index).items():
+            sequence_id, recording_id, drone = sequences[seq_index]
+            part = pd.DataFrame({"sequence_id": sequence_id, "recording_id": recording_id, "drone": drone,
+                                 "light": light, "timestamp": seq["time"], "gt_valid": seq["gt_valid"].astype(int)})
+            part[["x", "y", "z"]] = seq["position"]
+            part[["gt_x", "gt_y", "gt_z"]] = seq["gt"]
+            part[["smooth_x", "smooth_y", "smooth_z"]] = smoothed.get(seq_index, np.full_like(seq["position"], np.nan))
+            parts.append(part)
+    if not parts:
+        raise ValueError("the test run produced no predictions")
+    return pd.concat(parts, ignore_index=True)
+
+
+def _constant(job: JobSpec) -> dict[str, Any]:
+    """The mean training target (``job.target``: gt or pseudo) predicted for every test window."""
+    from zoo.cli import lightning_cli
+
+    cli = lightning_cli(job.cli_args, run=False)
+    datamodule = cli.datamodule
+    datamodule.prepare_data()
+    datamodule.setup("fit")
+    datamodule.setup("test")
+    train = datamodule.sequences["train"]
+    target = np.concatenate([getattr(p, job.target) for p in train])
+    valid = np.concatenate([getattr(p, f"{job.target}_valid") for p in train])
+    if not valid.any():
+        raise ValueError(f"no valid training {job.target} target to average")
+    mean = target[valid].mean(axis=0)
+    sequences = {p.sequence_id: p for p in datamodule.sequences["test"]}
+    parts = []
+    for light in datamodule.test_lights:
+        for sequence_id, recording_id, drone in _sequence_table(datamodule):
+            if sequence_id not in sequences:
+                continue
+            piece = sequences[sequence_id]
+            part = pd.DataFrame({"sequence_id": sequence_id, "recording_id": recording_id, "drone": drone,
+                                 "light": light, "timestamp": piece.times, "gt_valid": piece.gt_valid.astype(int)})
+            part[["x", "y", "z"]] = np.broadcast_to(mean, (len(piece), 3))
+            part[["gt_x", "gt_y", "gt_z"]] = piece.gt
+            part[["smooth_x", "smooth_y", "smooth_z"]] = np.nan
+            parts.append(part)
+    frame = pd.concat(parts, ignore_index=True)
+    row: dict[str, Any] = {"alpha": 1.0 if job.target == "pseudo" else 0.0}
+    valid_rows = frame[frame["gt_valid"] == 1]
+    for light in datamodule.test_lights:
+        rows = valid_rows[valid_rows["light"] == light]
+        error = rows[["x", "y", "z"]].to_numpy() - rows[["gt_x", "gt_y", "gt_z"]].to_numpy()
+        for axis, name in enumerate(("Dx", "Dy", "Dz")):
+            row[f"{name}_{light}"] = float(np.abs(error[:, axis]).mean())
+        distance = np.linalg.norm(error, axis=1)
+        row[f"E_{light}"] = float(distance.mean())
+        row[f"RMSE_{light}"] = float(np.sqrt((distance**2).mean()))
+    row.update(split_counts(datamodule))
+    row.update(breakdown(frame))
+    row["predictions_path"] = _write_predictions(Path(job.job_dir) / "predictions.csv", frame)
+    return row

@@ -1,0 +1,215 @@
+"""Run a benchmark suite: prepare its data, launch its jobs with submitit, append their rows to ``results.csv``.
+
+Each job runs in its own process (submitit's local executor on one machine, its Slurm executor on a
+cluster), so a crash or an out-of-memory kill loses that job alone: its row records the error
+and the path of its log, and the suite goes on. Rows are appended atomically as jobs finish;
+re-running a suite skips the jobs whose row is ``ok`` with the same configuration hash, so an
+interrupted run loses nothing (``rerun=True`` forces every job again). Profiling jobs run last,
+one at a time, so their timings do not share the cores with training.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from benchmarks.jobs import run_job
+from benchmarks.results import append_rows, read_results
+from benchmarks.suite import JobSpec, Suite, check_job_args, expand_jobs
+
+log = logging.getLogger(__name__)
+
+_EXCEPTION_LINE = re.compile(r"^[A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit)\b.*")
+SIMULATE_KEYS = {"sequences", "seconds", "seed", "workers", "scene"}
+
+
+@dataclass
+class RunSummary:
+    """What a suite run did."""
+
+    results: Path
+    done: list[str] = field(default_factory=list)
+    failed: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    stages: dict[str, float] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------- data
+
+
+def prepare_data(suite: Suite) -> str:
+    """Simulate and label the suite's data where it asks to (reusing what exists); return its fingerprint."""
+    from datamodules.cache import path_fingerprint
+    from datamodules.formats import discover_all
+
+    data = suite.data
+    root = Path(data["root"])
+    simulate = data.get("simulate")
+    if simulate:
+        unknown = sorted(set(simulate) - SIMULATE_KEYS)
+        if unknown:
+            raise ValueError(f"{suite.path}: unknown data.simulate key(s) {unknown}; known: {sorted(SIMULATE_KEYS)}")
+        from datamodules.simulate.simulator import SimulationConfig, simulate_dataset
+
+        config = SimulationConfig(duration=float(simulate.get("seconds", 60.0)),
+                                  scene=simulate.get("scene", "rooftop"))
+        simulate_dataset(root, int(simulate.get("sequences", 15)), config, seed=int(simulate.get("seed", 0)),
+                         workers=int(simulate.get("workers", 1)))
+    label = data.get("label")
+    if label:
+        from datamodules.label import label_paths
+
+        outcomes = label_paths([root], workers=int(label.get("workers", 1)), skip_existing=True)
+        failed = [o for o in outcomes if o.error]
+        if failed:
+            raise ValueError(f"labelling failed for {len(failed)} recording(s), first: {failed[0].path}: "
+                             f"{failed[0].error}")
+    if not root.exists():
+        raise ValueError(f"{suite.path}: data.root {root} does not exist (set data.root or --data.root)")
+    import hashlib
+
+    paths = discover_all([root])
+    if not paths:
+        raise ValueError(f"{suite.path}: no recordings under data.root {root}")
+    digest = hashlib.sha256("\n".join(path_fingerprint(p) for p in sorted(paths)).encode())
+    return digest.hexdigest()[:16]
+
+
+# ---------------------------------------------------------------------------------------------- launching
+
+
+def make_executor(suite: Suite, job: JobSpec, kind: str):
+    """A submitit executor for one job, its logs in the job's folder."""
+    import submitit
+
+    launcher = suite.launcher
+    folder = Path(job.job_dir) / "logs"
+    if kind == "debug":
+        executor = submitit.DebugExecutor(folder)
+    elif kind == "local":
+        executor = submitit.LocalExecutor(folder)
+        executor.update_parameters(timeout_min=int(launcher["timeout_min"]))
+    elif kind == "slurm":
+        executor = submitit.AutoExecutor(folder, cluster="slurm")
+        slurm = dict(launcher.get("slurm") or {})
+        executor.update_parameters(timeout_min=int(launcher["timeout_min"]), name=f"aaute-{job.job_id}",
+                                   **{k if k in ("gpus_per_node", "cpus_per_task", "tasks_per_node", "nodes",
+                                                 "mem_gb") else f"slurm_{k}": v for k, v in slurm.items()})
+    else:
+        raise ValueError(f"unknown launcher {kind!r}; known: local, slurm, debug")
+    return executor
+
+
+def _relative(path: Any, base: Path) -> Any:
+    if not path or not isinstance(path, str) or path == "last":
+        return path
+    return os.path.relpath(Path(path).resolve(), base.resolve())
+
+
+def _error_row(job: JobSpec, error: BaseException, log_path: str) -> dict[str, Any]:
+    from benchmarks.jobs import _base_row
+
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    # submitit's message holds the job's own traceback: its last "SomeError: ..." line is the cause
+    raised = [line for line in lines if _EXCEPTION_LINE.match(line)]
+    message = raised[-1] if raised else (lines[0] if lines else type(error).__name__)
+    row = _base_row(job)
+    row.update(status="failed", error=message[:500], log_path=log_path)
+    return row
+
+
+def finished_jobs(results: Path) -> dict[str, str]:
+    """job_id -> config hash of the jobs whose latest row is ok."""
+    if not results.exists():
+        return {}
+    frame = read_results(results)
+    done: dict[str, str] = {}
+    for _, row in frame.iterrows():
+        if row["status"] == "ok":
+            done[row["job_id"]] = row["config_hash"]
+        else:
+            done.pop(row["job_id"], None)
+    return done
+
+
+def _progress(summary: RunSummary, running: int, pending: int, start: float) -> str:
+    elapsed = time.perf_counter() - start
+    return (f"[{len(summary.done)} done, {running} running, {len(summary.failed)} failed, {pending} remaining, "
+            f"{int(elapsed // 60):02d}:{int(elapsed % 60):02d}]")
+
+
+def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary: RunSummary,
+            poll_seconds: float = 1.0) -> None:
+    """Run ``jobs`` with at most ``parallel`` at once; append each row as its job ends."""
+    start = time.perf_counter()
+    pending = list(jobs)
+    running: dict[str, tuple[JobSpec, Any]] = {}
+    while pending or running:
+        while pending and len(running) < parallel:
+            job = pending.pop(0)
+            handle = make_executor(suite, job, kind).submit(run_job, job)
+            running[job.job_id] = (job, handle)
+            log.info("%s started %s", _progress(summary, len(running), len(pending), start), job.job_id)
+        for job_id, (job, handle) in list(running.items()):
+            if not handle.done():
+                continue
+            del running[job_id]
+            log_path = _relative(str(handle.paths.stderr), suite.out)
+            try:
+                row = handle.result()
+                row["log_path"] = log_path
+                for key in ("predictions_path", "checkpoint_path"):
+                    row[key] = _relative(row.get(key), suite.out)
+                row["launcher"] = kind
+                summary.done.append(job_id)
+                status = f"ok in {row['wall_time_s']:.0f} s"
+                if row.get("E_ideal") is not None:
+                    status += f", E_ideal {row['E_ideal']:.2f} m"
+            except Exception as error:  # the job's own failure, reported by submitit
+                row = _error_row(job, error, log_path)
+                row["launcher"] = kind
+                summary.failed.append(job_id)
+                status = f"FAILED: {row['error']} (log: {suite.out / log_path})"
+            append_rows(suite.results_path, [row])
+            log.info("%s %s %s", _progress(summary, len(running), len(pending), start), job_id, status)
+        if running:
+            time.sleep(poll_seconds)
+
+
+def run_suite(suite: Suite, rerun: bool = False, launcher: str | None = None, only: list[str] | None = None
+              ) -> RunSummary:
+    """Prepare data, then run every unfinished job of ``suite`` (``only``: job ids or model names)."""
+    start = time.perf_counter()
+    summary = RunSummary(suite.results_path)
+    suite.out.mkdir(parents=True, exist_ok=True)
+    kind = launcher or suite.launcher["kind"]
+    if suite.raw.get("expected_runtime"):
+        log.info("suite %s: expected run time: %s", suite.name, suite.raw["expected_runtime"])
+    stage = time.perf_counter()
+    fingerprint = prepare_data(suite)
+    summary.stages["data"] = time.perf_counter() - stage
+    jobs = expand_jobs(suite, fingerprint)
+    if only:
+        jobs = [j for j in jobs if j.job_id in only or j.model in only]
+    check_job_args(suite, jobs)
+    finished = {} if rerun else finished_jobs(suite.results_path)
+    todo = [j for j in jobs if finished.get(j.job_id) != j.config_hash]
+    summary.skipped = [j.job_id for j in jobs if j not in todo]
+    if summary.skipped:
+        log.info("%d of %d jobs already finished (results in %s); --rerun runs them again",
+                 len(summary.skipped), len(jobs), suite.results_path)
+    parallel = max(1, int(suite.launcher["parallel"]))
+    stage = time.perf_counter()
+    _launch(suite, [j for j in todo if j.kind != "profile"], parallel, kind, summary)
+    summary.stages["train_test"] = time.perf_counter() - stage
+    stage = time.perf_counter()
+    _launch(suite, [j for j in todo if j.kind == "profile"], 1, kind, summary)
+    summary.stages["profile"] = time.perf_counter() - stage
+    summary.seconds = time.perf_counter() - start
+    return summary

@@ -1,0 +1,129 @@
+"""Benchmark suites and the runner: validation, job expansion, crash isolation, resumption, the shipped suites."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from benchmarks.results import read_results
+from benchmarks.runner import finished_jobs, run_suite
+from benchmarks.suite import SuiteError, check_job_args, expand_jobs, load_suite
+
+REPO = Path(__file__).resolve().parents[2]
+SUITES = sorted((REPO / "configs" / "benchmark").glob("*.yaml"))
+SPLIT = {"train": ["sim11-0000-avata"], "val": ["sim11-0001-m300"], "test": ["sim11-0002-mavic2"]}
+
+
+def _write_suite(path: Path, **changes) -> Path:
+    suite = {
+        "name": "tiny",
+        "out": str(path.parent / "out"),
+        "data": {"description": "three 4 s simulated flights", "kind": "simulated",
+                 "config": str(REPO / "configs/data/sim.yaml"), "root": changes.pop("root"),
+                 "init_args": {"window_seconds": 1.0, "batch_size": 4, "cache_dir": changes.pop("cache")}},
+        "trainer": {"config": [str(REPO / "configs/trainer/default.yaml")],
+                    "overrides": {"accelerator": "cpu", "max_epochs": 1, "limit_train_batches": 2,
+                                  "limit_val_batches": 1, "enable_model_summary": False}},
+        "protocols": {"by_sequence": SPLIT},
+        "lights": ["ideal", "dark"],
+        "seeds": [0],
+        "smoothing": False,
+        "constant": ["gt"],
+        "models": [{"model": "student", "config": str(REPO / "configs/model/student.yaml"),
+                    "args": {"model.lr": changes.pop("lr", 1e-4)}}],
+        "profile": False,
+        "launcher": {"kind": "local", "parallel": 2, "threads_per_job": 1, "timeout_min": 10},
+    }
+    suite.update(changes)
+    path.write_text(yaml.safe_dump(suite))
+    return path
+
+
+def test_a_crashed_job_keeps_the_others_rows_and_a_rerun_completes_only_it(labelled_dir, feature_cache, tmp_path):
+    kwargs = {"root": str(labelled_dir), "cache": str(feature_cache)}
+    suite = load_suite(_write_suite(tmp_path / "suite.yaml", lr=-1.0, **kwargs))  # Adam refuses lr < 0
+    first = run_suite(suite)
+    assert first.failed == ["student-by_sequence-s0"] and first.done == ["constant_gt-by_sequence-s0"]
+    rows = read_results(suite.results_path)
+    failed = rows[rows["status"] == "failed"].iloc[0]
+    assert "learning rate" in failed["error"].lower()
+    assert (suite.out / failed["log_path"]).is_file()
+    constant = rows[rows["kind"] == "constant"].iloc[0]
+    assert constant["E_ideal"] > 0 and constant["E_ideal"] == pytest.approx(constant["E_dark"])
+    assert constant["n_test_sequences"] == 1 and constant["git_commit"]
+
+    fixed = load_suite(_write_suite(tmp_path / "suite.yaml", **kwargs))
+    second = run_suite(fixed)
+    assert second.skipped == ["constant_gt-by_sequence-s0"] and second.done == ["student-by_sequence-s0"]
+    rows = read_results(fixed.results_path)
+    model = rows[(rows["kind"] == "model") & (rows["status"] == "ok")].iloc[0]
+    assert model["protocol"] == "by_sequence" and model["category"] == "self-supervised"
+    assert model["E_ideal"] > 0 and model["E_ideal_mavic2"] == pytest.approx(model["E_ideal"])
+    assert (fixed.out / model["predictions_path"]).is_file()
+    assert set(finished_jobs(fixed.results_path)) == {"constant_gt-by_sequence-s0", "student-by_sequence-s0"}
+    assert run_suite(fixed).skipped == ["student-by_sequence-s0", "constant_gt-by_sequence-s0"]
+
+
+def test_suite_errors_name_the_key(tmp_path, labelled_dir):
+    base = {"root": str(labelled_dir), "cache": str(tmp_path / "cache")}
+    with pytest.raises(SuiteError, match="unknown model 'bogus'; known models: .*student"):
+        load_suite(_write_suite(tmp_path / "a.yaml", models=[{"model": "bogus"}], **base))
+    with pytest.raises(SuiteError, match=r"unknown protocol\(s\) \['leaky'\]; known: .*time_blocks"):
+        load_suite(_write_suite(tmp_path / "b.yaml", protocols={"leaky": {}}, **base))
+    with pytest.raises(SuiteError, match=r"unknown key\(s\) \['modles'\]"):
+        load_suite(_write_suite(tmp_path / "c.yaml", modles=[], **base))
+    suite = load_suite(_write_suite(tmp_path / "d.yaml", models=[
+        {"model": "student", "config": str(REPO / "configs/model/student.yaml"), "args": {"model.bogus_key": 1}}],
+        **base))
+    with pytest.raises(SuiteError, match="student-by_sequence-s0: its configuration does not parse.*bogus_key"):
+        check_job_args(suite, expand_jobs(suite))
+
+
+@pytest.mark.parametrize("path", SUITES, ids=lambda p: p.stem)
+def test_shipped_suites_expand_and_parse(path):
+    suite = load_suite(path, {"data.root": "/data/mmaud"} if path.stem == "mmaud_v1" else None)
+    jobs = expand_jobs(suite, "fingerprint")
+    assert jobs and len({j.job_id for j in jobs}) == len(jobs)
+    check_job_args(suite, jobs)
+    kinds = {j.kind for j in jobs}
+    assert {"model", "constant"} <= kinds
+    for job in jobs:
+        if job.kind == "model":
+            assert job.protocol in suite.raw["protocols"]
+
+
+def test_the_demo_suite_covers_the_comparison():
+    from zoo.registry import list_models
+
+    suite = load_suite(REPO / "configs" / "benchmark" / "quick.yaml")
+    jobs = expand_jobs(suite)
+    trained = {(j.model, j.protocol) for j in jobs if j.kind == "model"}
+    assert {m for m, _ in trained} == set(list_models())
+    assert {p for _, p in trained} == {"by_sequence", "random_windows"}
+    assert ("student", "random_windows") in trained
+    assert suite.raw["lights"] == ["ideal", "dark"] and suite.raw["smoothing"]
+    assert suite.data["simulate"]["sequences"] >= 15  # three flights per drone type at least
+    assert {j.model for j in jobs if j.kind == "profile"} == set(list_models())
+    assert str(suite.out).startswith("demo_out")
+
+
+def test_the_mmaud_v1_suite_runs_on_a_derived_npy_copy(tmp_path, monkeypatch):
+    """The real-data suite on a small fixture of the derived per-sample layout (two 8 s flights)."""
+    from tests.datamodules.test_format_derived_npy import make_derived
+
+    monkeypatch.setattr("tests.datamodules.test_format_derived_npy.CHUNK", 4608)  # 0.1 s per file at 46080 Hz
+    root = tmp_path / "Data-M"
+    make_derived(root, {"0": 80, "3": 80}, images=False)
+    suite = load_suite(REPO / "configs" / "benchmark" / "mmaud_v1.yaml",
+                       {"data.root": str(root), "out": str(tmp_path / "out")})
+    suite.raw["data"]["init_args"] = {"num_workers": 0, "window_seconds": 0.5, "batch_size": 8,
+                                      "cache_dir": str(tmp_path / "cache")}
+    suite.raw["trainer"]["overrides"] = {"accelerator": "cpu", "max_epochs": 1, "enable_model_summary": False}
+    summary = run_suite(suite, launcher="debug", only=["student-time_blocks-s0", "constant_gt-time_blocks-s0"])
+    assert summary.failed == [] and len(summary.done) == 2
+    rows = read_results(suite.results_path)
+    assert set(rows["protocol"]) == {"time_blocks"} and set(rows["data_kind"]) == {"real"}
+    assert (rows["n_train_sequences"] == 2).all() and (rows["n_test_sequences"] == 2).all()
+    assert rows["E_ideal"].notna().all()
