@@ -2,7 +2,8 @@
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
-DEMO_OUT ?= demo_out
+# where configs/benchmark/quick.yaml writes (its out, data root and cache)
+DEMO_OUT := demo_out
 
 .PHONY: setup demo test test-all lint bench clean
 
@@ -14,8 +15,10 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	$(BIN)/python -m pip install -c constraints.txt -e ".[dev,rosbag]"
 	touch $@
 
+# the comparison table on simulated data: simulate, label, train and test every model, profile, render
 demo: setup
-	$(BIN)/aaute simulate --out $(DEMO_OUT)/data --sequences 5 --seconds 20 --seed 0 --workers 2
+	$(BIN)/aaute benchmark --suite configs/benchmark/quick.yaml
+	$(BIN)/aaute leaderboard $(DEMO_OUT)/benchmark/results.csv --out $(DEMO_OUT)/leaderboard
 
 test: setup
 	$(BIN)/python -m pytest
