@@ -84,26 +84,33 @@ def prepare_data(suite: Suite) -> str:
 # ---------------------------------------------------------------------------------------------- launching
 
 
+def slurm_parameters(suite: Suite, job: JobSpec) -> dict[str, Any]:
+    """submitit ``SlurmExecutor`` parameters of one job: the suite's ``launcher.slurm`` keys (partition,
+    gpus_per_node, cpus_per_task, mem, ntasks_per_node, ...), its timeout and the job's name."""
+    return {"time": int(suite.launcher["timeout_min"]), "job_name": f"aaute-{job.job_id}",
+            **dict(suite.launcher.get("slurm") or {})}
+
+
 def make_executor(suite: Suite, job: JobSpec, kind: str):
     """A submitit executor for one job, its logs in the job's folder."""
     import submitit
 
-    launcher = suite.launcher
     folder = Path(job.job_dir) / "logs"
     if kind == "debug":
-        executor = submitit.DebugExecutor(folder)
-    elif kind == "local":
+        return submitit.DebugExecutor(folder)
+    if kind == "local":
         executor = submitit.LocalExecutor(folder)
-        executor.update_parameters(timeout_min=int(launcher["timeout_min"]))
-    elif kind == "slurm":
-        executor = submitit.AutoExecutor(folder, cluster="slurm")
-        slurm = dict(launcher.get("slurm") or {})
-        executor.update_parameters(timeout_min=int(launcher["timeout_min"]), name=f"aaute-{job.job_id}",
-                                   **{k if k in ("gpus_per_node", "cpus_per_task", "tasks_per_node", "nodes",
-                                                 "mem_gb") else f"slurm_{k}": v for k, v in slurm.items()})
-    else:
-        raise ValueError(f"unknown launcher {kind!r}; known: local, slurm, debug")
-    return executor
+        executor.update_parameters(timeout_min=int(suite.launcher["timeout_min"]))
+        return executor
+    if kind == "slurm":
+        try:
+            executor = submitit.SlurmExecutor(folder)
+        except RuntimeError as error:  # no srun on this machine
+            raise ValueError(f"launcher slurm: {error} (run from a Slurm login node, or use --launcher local)"
+                             ) from None
+        executor.update_parameters(**slurm_parameters(suite, job))
+        return executor
+    raise ValueError(f"unknown launcher {kind!r}; known: local, slurm, debug")
 
 
 def _relative(path: Any, base: Path) -> Any:

@@ -28,6 +28,10 @@ fails before anything trains. The keys (all paths relative to the working direct
     profile: {min_run_time: 0.5, throughput_batch: 64}   # or false
     launcher: {kind: local, parallel: 2, threads_per_job: 1, timeout_min: 120,
                slurm: {partition: gpu, gpus_per_node: 1, cpus_per_task: 8}}
+
+A job asking for several devices trains with Lightning's DDP: under Slurm give ``ntasks_per_node``
+equal to ``trainer.devices`` (Lightning reads the Slurm environment); in a local job use
+``trainer.strategy: ddp_spawn``, which needs no re-launch of the job's command line.
 """
 
 from __future__ import annotations
