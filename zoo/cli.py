@@ -205,6 +205,8 @@ def build_parser(extra: Callable[[argparse._SubParsersAction], None] | None = No
 
 
 LIGHTNING_COMMANDS = ("fit", "validate", "test", "predict")
+#: TrajectoryTask arguments that belong to a run, not to a checkpoint (kept from the command line)
+RUN_SETTINGS = ("predictions_dir", "predictions_topic", "smooth", "smoother")
 
 
 def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: bool = True,
@@ -225,6 +227,17 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
         def instantiate_classes(self) -> None:
             if instantiate:
                 super().instantiate_classes()
+
+        def _parse_ckpt_path(self) -> None:
+            # Lightning merges a checkpoint's hyperparameters over the command line; where this run writes
+            # its outputs and how it smooths them are this run's settings, not the trained model's
+            subcommand = self.config.get("subcommand")
+            init_args = self.config[subcommand].get("model", {}).get("init_args") if subcommand else None
+            given = {key: init_args.get(key) for key in RUN_SETTINGS} if init_args is not None else {}
+            super()._parse_ckpt_path()
+            if given:
+                for key, value in given.items():
+                    self.config[subcommand]["model"]["init_args"][key] = value
 
     return _CLI(
         TrajectoryTask,

@@ -168,3 +168,17 @@ def test_smooth_command_writes_std_columns(tmp_path):
     assert smoothed_error < 0.5 * np.linalg.norm(noisy - truth, axis=1).mean()
     assert main(["smooth", str(tmp_path / "missing.csv"), str(tmp_path / "never.csv")]) == 2
     assert not (tmp_path / "never.csv").exists()
+
+
+def test_predict_from_a_checkpoint_keeps_this_runs_output_settings(labelled_dir, feature_cache, tmp_path):
+    """A checkpoint's hyperparameters (predictions_dir None) must not override where this run writes."""
+    common = ["--config", str(CONFIGS[0].with_name("student.yaml")), "--data.root", str(labelled_dir),
+              "--data.split", SPLIT, "--data.window_seconds", "1.0", "--data.cache_dir", str(feature_cache),
+              "--trainer.default_root_dir", str(tmp_path), "--trainer.enable_progress_bar", "false"]
+    assert main(["fit", *common, "--trainer.max_epochs", "1", "--trainer.limit_train_batches", "1",
+                 "--trainer.limit_val_batches", "1"]) == 0
+    checkpoint = next(tmp_path.rglob("*.ckpt"))
+    out = tmp_path / "predictions"
+    assert main(["predict", *common, "--ckpt_path", str(checkpoint), "--model.predictions_dir", str(out),
+                 "--data.test_lights", "[ideal]"]) == 0
+    assert (out / "sim11-0002-mavic2_ideal.csv").is_file()
