@@ -70,7 +70,8 @@ def provenance(threads: int) -> dict[str, Any]:
                         f"python={platform.python_version()}"}
 
 
-def _base_row(job: JobSpec) -> dict[str, Any]:
+def base_row(job: JobSpec) -> dict[str, Any]:
+    """The columns every row of ``job`` has, whatever its outcome."""
     return {"kind": job.kind, "suite": job.suite, "job_id": job.job_id, "status": "ok", "model": job.model,
             "method": job.method, "category": job.category, "protocol": job.protocol, "seed": job.seed,
             "budget_note": job.budget_note, "config_hash": job.config_hash, "data": job.data.get("description"),
@@ -87,7 +88,7 @@ def run_job(job: JobSpec) -> dict[str, Any]:
     sys.argv = sys.argv[:1]  # the launcher's own arguments are not LightningCLI's
     Path(job.job_dir).mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    row = _base_row(job)
+    row = base_row(job)
     if job.kind == "model":
         row.update(_train_and_test(job))
     elif job.kind == "constant":

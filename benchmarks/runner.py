@@ -10,6 +10,7 @@ one at a time, so their timings do not share the cores with training.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import re
@@ -18,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from benchmarks.jobs import run_job
+from benchmarks.jobs import base_row, run_job
 from benchmarks.results import append_rows, read_results
 from benchmarks.suite import JobSpec, Suite, check_job_args, expand_jobs
 
@@ -72,8 +73,6 @@ def prepare_data(suite: Suite) -> str:
                              f"{failed[0].error}")
     if not root.exists():
         raise ValueError(f"{suite.path}: data.root {root} does not exist (set data.root or --data.root)")
-    import hashlib
-
     paths = discover_all([root])
     if not paths:
         raise ValueError(f"{suite.path}: no recordings under data.root {root}")
@@ -120,13 +119,11 @@ def _relative(path: Any, base: Path) -> Any:
 
 
 def _error_row(job: JobSpec, error: BaseException, log_path: str) -> dict[str, Any]:
-    from benchmarks.jobs import _base_row
-
     lines = [line.strip() for line in str(error).splitlines() if line.strip()]
     # submitit's message holds the job's own traceback: its last "SomeError: ..." line is the cause
     raised = [line for line in lines if _EXCEPTION_LINE.match(line)]
     message = raised[-1] if raised else (lines[0] if lines else type(error).__name__)
-    row = _base_row(job)
+    row = base_row(job)
     row.update(status="failed", error=message[:500], log_path=log_path)
     return row
 

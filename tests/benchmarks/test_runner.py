@@ -144,3 +144,22 @@ def test_the_slurm_launcher_takes_the_suites_options(tmp_path):
             make_executor(suite, job, "slurm")
     with pytest.raises(ValueError, match="unknown launcher 'pbs'"):
         make_executor(suite, job, "pbs")
+
+
+@pytest.mark.slow
+def test_the_demo_suite_runs_end_to_end_to_the_leaderboard(tmp_path):
+    """`make demo` in a temporary folder: about 12 minutes on 2 cores."""
+    from benchmarks.leaderboard import render_leaderboard
+    from zoo.registry import list_models
+
+    suite = load_suite(REPO / "configs" / "benchmark" / "quick.yaml",
+                       {"out": str(tmp_path / "benchmark"), "data.root": str(tmp_path / "data")})
+    suite.raw["data"]["init_args"]["cache_dir"] = str(tmp_path / "cache")
+    summary = run_suite(suite)
+    assert summary.failed == []
+    rows = read_results(suite.results_path)
+    assert (rows["status"] == "ok").all()
+    assert set(rows.loc[rows["kind"] == "model", "model"]) == set(list_models())
+    assert set(rows["protocol"].dropna()) == {"by_sequence", "random_windows"}
+    report = render_leaderboard(suite.results_path, tmp_path / "leaderboard")
+    assert "Constant (mean train GT)" in report.markdown and (tmp_path / "leaderboard" / "leaderboard.html").is_file()
