@@ -108,15 +108,13 @@ def run_job(job: JobSpec) -> dict[str, Any]:
 
 
 def split_counts(datamodule) -> dict[str, Any]:
-    """Recordings and windows per split, and what the data holds, as result columns."""
+    """Recordings and windows per split (the DataModule's own summary), and what the data holds, as result columns."""
+    summary = datamodule.split_summary()
     row: dict[str, Any] = {}
-    drones: set[str] = set()
     for split in ("train", "val", "test"):
-        pieces = datamodule.sequences.get(split, [])
-        recordings = {getattr(p, "recording_id", p.sequence_id) for p in pieces}
-        row[f"n_{split}_sequences"] = len(recordings)
-        row[f"n_{split}_windows"] = sum(len(p) for p in pieces)
-        drones.update(p.drone for p in pieces if p.drone)
+        row[f"n_{split}_sequences"] = summary[split]["sequences"]
+        row[f"n_{split}_windows"] = summary[split]["windows"]
+    drones = {p.drone for pieces in datamodule.sequences.values() for p in pieces if p.drone}
     row["drones"] = ",".join(sorted(drones))
     row["lights"] = ",".join(datamodule.test_lights)
     return row
@@ -124,11 +122,11 @@ def split_counts(datamodule) -> dict[str, Any]:
 
 def _sequence_table(datamodule) -> list[tuple[str, str, str]]:
     """(sequence id, recording id, drone) in the order batches index sequences."""
-    return [(p.sequence_id, getattr(p, "recording_id", p.sequence_id), p.drone or "")
+    return [(p.sequence_id, p.recording_id, p.drone or "")
             for split in ("train", "val", "test") for p in datamodule.sequences.get(split, [])]
 
 
-def breakdown(frame: pd.DataFrame, column: str = "position") -> dict[str, float]:
+def breakdown(frame: pd.DataFrame) -> dict[str, float]:
     """E per light x drone and per light x range band (the drone's distance from the rig origin)."""
     row: dict[str, float] = {}
     valid = frame[frame["gt_valid"] == 1]
@@ -185,7 +183,7 @@ def _train_and_test(job: JobSpec) -> dict[str, Any]:
     if best:
         import torch
 
-        row["best_epoch"] = torch.load(best, map_location="cpu", weights_only=True)["epoch"]
+        row["best_epoch"] = torch.load(best, map_location="cpu", weights_only=True, mmap=True)["epoch"]  # no full read
     for light in datamodule.test_lights:
         for name in ("Dx", "Dy", "Dz", "E", "RMSE"):
             row[f"{name}_{light}"] = metrics.get(f"test_{name}_{light}")
@@ -218,7 +216,10 @@ def _prediction_frame(task, datamodule) -> pd.DataFrame:
 
 def _constant(job: JobSpec) -> dict[str, Any]:
     """The mean training target (``job.target``: gt or pseudo) predicted for every test window."""
+    import torch
+
     from zoo.cli import lightning_cli
+    from zoo.metrics import TrajectoryError
 
     cli = lightning_cli(job.cli_args, run=False)
     datamodule = cli.datamodule
@@ -231,30 +232,25 @@ def _constant(job: JobSpec) -> dict[str, Any]:
     if not valid.any():
         raise ValueError(f"no valid training {job.target} target to average")
     mean = target[valid].mean(axis=0)
-    sequences = {p.sequence_id: p for p in datamodule.sequences["test"]}
     parts = []
     for light in datamodule.test_lights:
-        for sequence_id, recording_id, drone in _sequence_table(datamodule):
-            if sequence_id not in sequences:
-                continue
-            piece = sequences[sequence_id]
-            part = pd.DataFrame({"sequence_id": sequence_id, "recording_id": recording_id, "drone": drone,
-                                 "light": light, "timestamp": piece.times, "gt_valid": piece.gt_valid.astype(int)})
+        for piece in datamodule.sequences["test"]:
+            part = pd.DataFrame({"sequence_id": piece.sequence_id, "recording_id": piece.recording_id,
+                                 "drone": piece.drone or "", "light": light, "timestamp": piece.times,
+                                 "gt_valid": piece.gt_valid.astype(int)})
             part[["x", "y", "z"]] = np.broadcast_to(mean, (len(piece), 3))
             part[["gt_x", "gt_y", "gt_z"]] = piece.gt
             part[["smooth_x", "smooth_y", "smooth_z"]] = np.nan
             parts.append(part)
     frame = pd.concat(parts, ignore_index=True)
     row: dict[str, Any] = {"alpha": 1.0 if job.target == "pseudo" else 0.0}
-    valid_rows = frame[frame["gt_valid"] == 1]
-    for light in datamodule.test_lights:
-        rows = valid_rows[valid_rows["light"] == light]
-        error = rows[["x", "y", "z"]].to_numpy() - rows[["gt_x", "gt_y", "gt_z"]].to_numpy()
-        for axis, name in enumerate(("Dx", "Dy", "Dz")):
-            row[f"{name}_{light}"] = float(np.abs(error[:, axis]).mean())
-        distance = np.linalg.norm(error, axis=1)
-        row[f"E_{light}"] = float(distance.mean())
-        row[f"RMSE_{light}"] = float(np.sqrt((distance**2).mean()))
+    for light in datamodule.test_lights:  # the metric the trained models are scored with
+        rows = frame[frame["light"] == light]
+        metric = TrajectoryError()
+        metric.update(torch.from_numpy(rows[["x", "y", "z"]].to_numpy()),
+                      torch.from_numpy(rows[["gt_x", "gt_y", "gt_z"]].to_numpy()),
+                      torch.from_numpy(rows["gt_valid"].to_numpy() == 1))
+        row.update({f"{name}_{light}": float(value) for name, value in metric.compute().items()})
     row.update(split_counts(datamodule))
     row.update(breakdown(frame))
     row["predictions_path"] = _write_predictions(Path(job.job_dir) / "predictions.csv", frame)

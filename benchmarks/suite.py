@@ -80,7 +80,6 @@ class JobSpec:
     cli_args: list[str]
     job_dir: str
     threads: int
-    smoothing: bool = False
     budget_note: str = ""
     target: str = ""  #: constant jobs: 'gt' or 'pseudo'
     data: dict[str, Any] = field(default_factory=dict)
@@ -214,6 +213,11 @@ def _config_files(raw: dict[str, Any]) -> list[str]:
     return [*_trainer_configs(raw), raw["data"]["config"], *(m["config"] for m in raw["models"] if m.get("config"))]
 
 
+def _job_configs(raw: dict[str, Any], entry: dict[str, Any]) -> list[str]:
+    """The config files of one model job, in the order LightningCLI merges them."""
+    return [str(c) for c in (*_trainer_configs(raw), raw["data"]["config"], entry.get("config")) if c]
+
+
 def _file_digest(paths: list[str]) -> str:
     digest = hashlib.sha256()
     for item in paths:
@@ -233,9 +237,8 @@ def model_args(suite: Suite, entry: dict[str, Any], protocol: str, seed: int) ->
     explicit = any(isinstance(block.get(name), list | str) for name in ("train", "val", "test"))
     split = {"protocol": protocol, **({} if explicit else {"seed": seed}), **block}
     args: list[str] = []
-    for config in [*_trainer_configs(raw), data["config"], entry.get("config")]:
-        if config:
-            args += ["--config", str(config)]
+    for config in _job_configs(raw, entry):
+        args += ["--config", str(config)]
     args += ["--data.root", _cli_value(data["root"]), "--data.split", _cli_value(split),
              "--data.test_lights", _cli_value(list(raw["lights"]))]
     args += _as_args("data.", data.get("init_args") or {})
@@ -256,7 +259,6 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
     seeds = [int(s) for s in raw.get("seeds") or [0]]
     data_info = {"description": suite.data.get("description", ""), "kind": suite.data.get("kind", "simulated"),
                  "root": str(suite.data["root"]), "fingerprint": data_fingerprint}
-    config_digest = _file_digest(_config_files(raw))
     jobs: list[JobSpec] = []
     for protocol in raw["protocols"]:
         for seed in seeds:
@@ -271,20 +273,21 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
                     method=entry.get("method") or METHOD_NAMES.get(name, name),
                     category=model_class(name).category, protocol=protocol, seed=seed, cli_args=args,
                     job_dir=str(suite.out / "jobs" / job_id), threads=threads,
-                    smoothing=bool(raw.get("smoothing", True)), budget_note=entry.get("budget_note", ""),
-                    data=data_info, config_hash=_hash("model", args, config_digest, data_fingerprint)))
+                    budget_note=entry.get("budget_note", ""), data=data_info,
+                    config_hash=_hash("model", args, _file_digest(_job_configs(raw, entry)), data_fingerprint)))
             for target in raw.get("constant") or []:
                 # the windows of the student's config (else the first model's), not its training arguments
                 reference = next((m for m in raw["models"] if m["model"] == "student"), raw["models"][0])
-                args = model_args(suite, {"model": reference["model"], "config": reference.get("config")},
-                                  protocol, seed)
+                windows = {"model": reference["model"], "config": reference.get("config")}
+                args = model_args(suite, windows, protocol, seed)
                 job_id = f"constant_{target}-{protocol}-s{seed}"
                 jobs.append(JobSpec(
                     job_id=job_id, kind="constant", suite=suite.name, model="constant",
                     method=f"Constant (mean train {'GT' if target == 'gt' else 'pseudo-label'})",
                     category="reference", protocol=protocol, seed=seed, cli_args=args,
                     job_dir=str(suite.out / "jobs" / job_id), threads=threads, target=target, data=data_info,
-                    config_hash=_hash("constant", target, args, config_digest, data_fingerprint)))
+                    config_hash=_hash("constant", target, args, _file_digest(_job_configs(raw, windows)),
+                                      data_fingerprint)))
     profile = raw.get("profile", {})
     if profile is not False:
         options = dict(profile or {})

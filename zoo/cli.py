@@ -235,9 +235,8 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
             init_args = self.config[subcommand].get("model", {}).get("init_args") if subcommand else None
             given = {key: init_args.get(key) for key in RUN_SETTINGS} if init_args is not None else {}
             super()._parse_ckpt_path()
-            if given:
-                for key, value in given.items():
-                    self.config[subcommand]["model"]["init_args"][key] = value
+            for key, value in given.items():
+                self.config[subcommand]["model"]["init_args"][key] = value
 
     return _CLI(
         TrajectoryTask,
