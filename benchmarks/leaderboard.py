@@ -445,12 +445,17 @@ def _md_text(text: str) -> str:
     return re.sub(r"([\\`*|<>\[\]])", r"\\\1", text)
 
 
-def _md_cell(cell: Cell) -> str:
+def _format_cell(cell: Cell, missing: str, plus_minus: str, best: str, second: str) -> str:
+    """A cell in one output format: ``missing`` without a value, ``best`` / ``second`` wrap ("{}") a ranked one."""
     parts = cell.parts()
     if parts is None:
-        return MISSING
-    text = f"{parts[0]} ± {parts[1]}" if parts[1] else parts[0]
-    return {"best": f"**{text}**", "second": f"<u>{text}</u>"}.get(cell.mark, text)
+        return missing
+    text = f"{parts[0]}{plus_minus}{parts[1]}" if parts[1] else parts[0]
+    return {"best": best, "second": second}.get(cell.mark, "{}").format(text)
+
+
+def _md_cell(cell: Cell) -> str:
+    return _format_cell(cell, MISSING, " ± ", "**{}**", "<u>{}</u>")
 
 
 def markdown_table(table: Table) -> str:
@@ -483,11 +488,7 @@ def latex_escape(text: str) -> str:
 
 
 def _latex_cell(cell: Cell) -> str:
-    parts = cell.parts()
-    if parts is None:
-        return "--"
-    text = f"{parts[0]} $\\pm$ {parts[1]}" if parts[1] else parts[0]
-    return {"best": f"\\textbf{{{text}}}", "second": f"\\underline{{{text}}}"}.get(cell.mark, text)
+    return _format_cell(cell, "--", " $\\pm$ ", "\\textbf{{{}}}", "\\underline{{{}}}")
 
 
 def latex_table(table: Table) -> str:
@@ -526,11 +527,7 @@ def latex_table(table: Table) -> str:
 
 
 def _html_cell(cell: Cell) -> str:
-    parts = cell.parts()
-    if parts is None:
-        return MISSING
-    text = f"{parts[0]}&nbsp;±&nbsp;{parts[1]}" if parts[1] else parts[0]
-    return {"best": f"<b>{text}</b>", "second": f"<u>{text}</u>"}.get(cell.mark, text)
+    return _format_cell(cell, MISSING, "&nbsp;±&nbsp;", "<b>{}</b>", "<u>{}</u>")
 
 
 def html_table(table: Table) -> str:
