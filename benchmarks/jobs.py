@@ -165,11 +165,14 @@ def _train_and_test(job: JobSpec) -> dict[str, Any]:
             "--trainer.logger.version", ""]  # metrics.csv and checkpoints/ directly in the job folder
     cli = lightning_cli(args, run=False)
     trainer, task, datamodule = cli.trainer, cli.model, cli.datamodule
-    trainer.fit(task, datamodule=datamodule)
-    checkpoint = trainer.checkpoint_callback
-    best = getattr(checkpoint, "best_model_path", "") or ""
+    if task.learns:
+        trainer.fit(task, datamodule=datamodule)
+        best = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
+        ckpt_path = best or "last"
+    else:  # a non-learned net (srp_phat) is tested as built
+        best, ckpt_path = "", None
     epochs_run = trainer.current_epoch
-    trainer.test(task, datamodule=datamodule, ckpt_path=best or "last", verbose=False)
+    trainer.test(task, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False)
     metrics = {name: float(value) for name, value in trainer.callback_metrics.items()}
     reduced = task.net.reduced_settings() if hasattr(task.net, "reduced_settings") else {}
     notes = [job.budget_note] if job.budget_note else []
@@ -178,7 +181,7 @@ def _train_and_test(job: JobSpec) -> dict[str, Any]:
     limit = trainer.limit_train_batches
     row: dict[str, Any] = {"alpha": task.hparams.alpha, "max_epochs": trainer.max_epochs,
                            "limit_train_batches": None if limit == 1.0 else limit, "epochs_run": epochs_run,
-                           "batch_size": datamodule.hparams.batch_size, "checkpoint_path": best or "last",
+                           "batch_size": datamodule.hparams.batch_size, "checkpoint_path": best or ckpt_path or "",
                            "budget_note": "; ".join(notes)}
     if best:
         import torch

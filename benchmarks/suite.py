@@ -58,7 +58,7 @@ CONSTANT_TARGETS = ("gt", "pseudo")
 #: display names in the paper's table
 METHOD_NAMES = {"student": "Ours (AAUTE student)", "audionet": "AudioNet", "voranet": "VorasNet",
                 "asdnet": "ASDNet", "avped": "AV-PED", "avfdti": "AV-FDTI", "visualnet": "VisualNet",
-                "darknet": "DarkNet"}
+                "darknet": "DarkNet", "srp_phat": "SRP-PHAT"}
 
 
 class SuiteError(ValueError):

@@ -37,11 +37,13 @@ from torch.utils.data import DataLoader, Dataset
 from datamodules.cache import FeatureCache, array_fingerprint, path_fingerprint
 from datamodules.features import (
     DARK_MODES,
+    PhaseWindows,
     audio_window,
     image_features,
     image_recipe,
     mel_features,
     mel_recipe,
+    phase_recipe,
     published_dark,
     scale_image,
 )
@@ -58,7 +60,7 @@ from datamodules.splits import (
 
 log = logging.getLogger(__name__)
 
-INPUT_KINDS = ("audio_mel", "image")
+INPUT_KINDS = ("audio_mel", "audio_phase", "image")
 TARGET_MODES = ("both", "ground_truth", "pseudo")
 LIGHTS = ("ideal", "dark")
 #: the splits each stage needs windows in
@@ -112,6 +114,7 @@ class SequenceSamples:
     rows: np.ndarray | None = None  #: row of each sample in the cache entries (None: 0, 1, ...)
     recording_id: str = ""  #: the recording a piece comes from ('' : sequence_id)
     blocks: int = 1  #: contiguous time blocks of the recording in this piece
+    mic_positions: np.ndarray | None = None  #: channels x 3 (m), given to models that read phase features
 
     def __post_init__(self) -> None:
         if self.rows is None:
@@ -159,7 +162,9 @@ class MMAUDDataModule(L.LightningDataModule):
             than, the window), or ``{"protocol": "random_windows", ...}`` (the papers' overlapping split).
         window_seconds: audio seconds ending at the label time (causal).
         label_rate: samples per second (labels are thinned to this rate).
-        inputs: what the model consumes: ``{"audio_mel": <mel recipe>, "image": <image recipe>}``.
+        inputs: what the model consumes: ``{"audio_mel": <mel recipe>, "audio_phase": <phase recipe>,
+            "image": <image recipe>}``; with ``audio_phase``, batches also carry each recording's
+            ``mic_positions`` (B x channels x 3).
         light: condition of the validation loader ('ideal' or 'dark').
         test_lights: conditions of the test loaders, in order.
         dark_mode: 'published' (constant near-black image, visibility 0) or 'physical' (low-light rendering).
@@ -205,7 +210,11 @@ class MMAUDDataModule(L.LightningDataModule):
         if unknown:
             raise ValueError(f"unknown input(s) {sorted(unknown)}; known: {INPUT_KINDS}")
         self.audio_recipe = mel_recipe(self.inputs["audio_mel"]) if "audio_mel" in self.inputs else None
+        self.phase_recipe = phase_recipe(self.inputs["audio_phase"]) if "audio_phase" in self.inputs else None
         self.image_recipe = image_recipe(self.inputs["image"]) if "image" in self.inputs else None
+        if self.phase_recipe is not None and self.phase_recipe.span_seconds > window_seconds + 1e-9:
+            raise ValueError(f"phase recipe {self.phase_recipe.name!r} reads {self.phase_recipe.span_seconds:.3f} s "
+                             f"per window, more than window_seconds {window_seconds}")
         self.test_lights = list(test_lights or ["ideal", "dark"])
         for value in (light, *self.test_lights):
             if value not in LIGHTS:
@@ -379,9 +388,12 @@ class MMAUDDataModule(L.LightningDataModule):
         times = self._label_times(recording)
         keep = np.ones(times.size, dtype=bool)
         audio = recording.audio
-        if self.audio_recipe is not None and audio is None:
-            raise RecordingError(f"{path}: the model needs audio ('{self.audio_recipe.name}') but the "
-                                 f"recording has none")
+        for recipe in (self.audio_recipe, self.phase_recipe):
+            if recipe is not None and audio is None:
+                raise RecordingError(f"{path}: the model needs audio ('{recipe.name}') but the recording has none")
+        if self.phase_recipe is not None and audio.num_channels < 2:
+            raise RecordingError(f"{path}: phase features ('{self.phase_recipe.name}') need at least 2 microphones "
+                                 f"with known positions; the recording has {audio.num_channels}")
         if audio is not None:  # every model gets the same windows: those with their audio inside the recording
             span = self.hparams.window_seconds
             if self.hparams.faithful_window_order and self.audio_recipe is not None:
@@ -417,8 +429,9 @@ class MMAUDDataModule(L.LightningDataModule):
 
         class_id = DRONES[recording.drone].class_id if recording.drone in DRONES else -1
         keys = self._build_features(path, recording, times, image_index)
+        mics = audio.mic_positions.astype(np.float32) if self.phase_recipe is not None else None
         return SequenceSamples(path, recording.sequence_id, recording.drone, times, gt, gt_valid, pseudo,
-                               pseudo_valid, image_index, visible, class_id, keys)
+                               pseudo_valid, image_index, visible, class_id, keys, mic_positions=mics)
 
     def _build_features(self, path: Path, recording: Recording, times: np.ndarray,
                         image_index: np.ndarray) -> dict[str, str]:
@@ -439,6 +452,14 @@ class MMAUDDataModule(L.LightningDataModule):
                 return mel_features(window, audio.sample_rate, recipe).numpy()
 
             self.cache.build(key, times.size, (audio.num_channels, *recipe.output_shape), np.float32, mel)
+        if self.phase_recipe is not None:
+            recipe, audio = self.phase_recipe, recording.audio
+            mics = array_fingerprint(audio.mic_positions.astype(np.float64))
+            key = f"phase-{recipe.key()}-{mics}-{base}"
+            keys["audio_phase"] = key
+            # float16 halves the cache (values lie in [-1, 1]; 1e-3 resolution is far below the frames' noise)
+            self.cache.build(key, times.size, recipe.output_shape(audio.num_channels), np.float16,
+                             PhaseWindows(audio, recipe, times, source=str(path)))
         if self.image_recipe is not None:
             recipe, frames = self.image_recipe, recording.frames
             key = f"img-{recipe.key()}-{base}"
@@ -530,6 +551,10 @@ class WindowDataset(Dataset):
         row = int(seq.rows[i])  # a piece's samples index into its recording's cache entries
         if "audio_mel" in seq.feature_keys:
             item["audio_mel"] = torch.from_numpy(np.array(self._array(seq.feature_keys["audio_mel"])[row]))
+        if "audio_phase" in seq.feature_keys:
+            phase = np.array(self._array(seq.feature_keys["audio_phase"])[row], dtype=np.float32)
+            item["audio_phase"] = torch.from_numpy(phase)
+            item["mic_positions"] = torch.from_numpy(seq.mic_positions)
         visible = float(seq.visible[i])
         dark = self.light == "dark" or (self.dark_probability > 0 and torch.rand(()).item() < self.dark_probability)
         if "image" in seq.feature_keys:

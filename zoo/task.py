@@ -93,6 +93,17 @@ class TrajectoryTask(L.LightningModule):
         if bounds is not None and hasattr(self.net, "set_bounds"):
             self.net.set_bounds(bounds)
 
+    @property
+    def learns(self) -> bool:
+        """Whether the net has trainable parameters (a non-learned net such as ``srp_phat`` has none)."""
+        return any(parameter.requires_grad for parameter in self.net.parameters())
+
+    def on_fit_start(self) -> None:
+        if not self.learns:  # nothing to train: fit ends at once, the net is ready for test/predict
+            log.info("%s has no trainable parameters: fit does nothing; run 'aaute test' with the same config",
+                     self.hparams.net)
+            self.trainer.should_stop = True
+
     def _inputs(self, batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         wanted = dict(self.net.inputs)
         missing = sorted(set(wanted) - set(batch))
@@ -104,7 +115,8 @@ class TrajectoryTask(L.LightningModule):
         if not self._checked_inputs:
             self.net.check_inputs(batch)
             self._checked_inputs = True
-        return {name: batch[name] for name in wanted}
+        context = [name for name in getattr(self.net, "context_keys", ()) if name in batch]
+        return {name: batch[name] for name in (*wanted, *context)}
 
     def _training_target(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         """The target of the auxiliary losses: pseudo-labels if alpha >= 0.5, else ground truth."""
@@ -299,7 +311,9 @@ class TrajectoryTask(L.LightningModule):
 
     # ------------------------------------------------------------------------------ optimiser
 
-    def configure_optimizers(self) -> torch.optim.Optimizer:
+    def configure_optimizers(self) -> torch.optim.Optimizer | None:
+        if not self.learns:
+            return None
         # the fused kernel is several times faster than the per-tensor loop on CPU, same update rule
         return torch.optim.Adam(self.parameters(), lr=self.hparams.lr, betas=tuple(self.hparams.betas),
                                 weight_decay=self.hparams.weight_decay, fused=True)

@@ -28,12 +28,13 @@ from typing import Any, ClassVar
 import torch
 from torch import nn
 
-from datamodules.features import image_recipe, mel_recipe
+from datamodules.features import image_recipe, mel_recipe, phase_recipe
 
 NUM_CLASSES = 6  #: five drone types + "no drone" (AV-FDTI class convention)
 
 #: input name -> the lookup of its recipe kind (raises ValueError listing the known recipes of that kind)
-RECIPE_LOOKUPS: dict[str, Callable[[str], Any]] = {"audio_mel": mel_recipe, "image": image_recipe}
+RECIPE_LOOKUPS: dict[str, Callable[[str], Any]] = {"audio_mel": mel_recipe, "audio_phase": phase_recipe,
+                                                   "image": image_recipe}
 
 
 class TrajectoryNet(nn.Module):
@@ -44,6 +45,8 @@ class TrajectoryNet(nn.Module):
     inputs: dict[str, str] = {}
     category: ClassVar[str] = "supervised"  #: 'supervised' or 'self-supervised' (the paper's table)
     trains_position: ClassVar[bool] = True
+    #: batch entries the net reads besides its inputs, when the batch has them (e.g. ``mic_positions``, ``time``)
+    context_keys: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, in_channels: int = 4, class_weight: float = 0.0, input_recipes: dict[str, str] | None = None):
         super().__init__()
@@ -101,6 +104,8 @@ class TrajectoryNet(nn.Module):
                 shapes[name] = (self.in_channels, *mel_recipe(recipe).output_shape)
             elif name == "image":
                 shapes[name] = (3, *image_recipe(recipe).size)
+            elif name == "audio_phase":
+                shapes[name] = phase_recipe(recipe).output_shape(self.in_channels)
         return shapes
 
     def example_inputs(self, batch_size: int = 1) -> dict[str, torch.Tensor]:

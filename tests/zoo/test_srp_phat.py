@@ -1,0 +1,145 @@
+"""The phase recipe and the SRP-PHAT localiser on synthetic free-field sources."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from datamodules.features import PhaseWindows, mic_pairs, phase_features, phase_recipe
+from datamodules.recording import ArrayAudio, RecordingError
+from datamodules.simulate.microphones import distributed4
+from zoo.registry import get_model
+
+RATE = 48000.0
+SPEED = 349.0
+RECIPE = phase_recipe("gcc_phat")
+
+
+def _render(source: np.ndarray, mics: np.ndarray, seconds: float, snr_db: float = 30.0, seed: int = 0) -> np.ndarray:
+    """White noise from ``source`` reaching each microphone after its own delay (fractional, by FFT), 1/r."""
+    rng = np.random.default_rng(seed)
+    n = int(round(seconds * RATE))
+    pad = 8000
+    signal = rng.standard_normal(n + 2 * pad)
+    spectrum = np.fft.rfft(signal)
+    freqs = np.fft.rfftfreq(signal.size)
+    out = []
+    for mic in mics:
+        distance = np.linalg.norm(source - mic)
+        delayed = np.fft.irfft(spectrum * np.exp(-2j * np.pi * freqs * distance / SPEED * RATE), n=signal.size)
+        out.append(delayed[pad:pad + n] / distance)
+    audio = np.stack(out)
+    return audio + rng.standard_normal(audio.shape) * audio.std() * 10 ** (-snr_db / 20)
+
+
+def _locate(net, audio: np.ndarray) -> np.ndarray:
+    features = phase_features(audio, RATE, RECIPE)[None]
+    with torch.no_grad():
+        return net({"audio_phase": features})["position"][0].numpy()
+
+
+@pytest.fixture(scope="module")
+def net():
+    torch.set_num_threads(1)
+    return get_model("srp_phat", null_frames=300)
+
+
+def test_phase_recipe_peaks_at_the_geometric_delay():
+    mics = np.array([[0.0, 0.0, 1.0], [3.0, 0.0, 1.0]])
+    source = np.array([-4.0, 6.0, 3.0])
+    audio = _render(source, mics, RECIPE.span_seconds + 0.01)
+    features = phase_features(audio, RATE, RECIPE)
+    assert tuple(features.shape) == RECIPE.output_shape(2) == (1, RECIPE.frames, RECIPE.num_lags())
+    expected = (np.linalg.norm(source - mics[0]) - np.linalg.norm(source - mics[1])) / SPEED
+    peak = RECIPE.lags()[int(features[0].mean(dim=0).argmax())]
+    assert abs(peak - expected) <= 0.6 / RECIPE.lag_rate  # within the lag grid's rounding
+    assert float(features.max()) > 0.7  # a coherent source scores near 1
+
+
+def test_every_pair_once_and_two_microphones_at_least():
+    assert mic_pairs(4) == ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+    with pytest.raises(RecordingError, match="at least 2 microphones"):
+        mic_pairs(1)
+
+
+def test_nan_samples_name_the_recording_and_time():
+    samples = np.random.default_rng(0).standard_normal((4, int(3 * RATE))).astype(np.float32)
+    samples[2, int(2.5 * RATE)] = np.nan
+    audio = ArrayAudio(samples, RATE, 100.0, distributed4())
+    windows = PhaseWindows(audio, RECIPE, np.array([101.0, 102.8]), source="flight.mcap")
+    windows(0)
+    with pytest.raises(RecordingError, match=r"flight.mcap: window ending at 102.800 s: .*NaN"):
+        windows(1)
+
+
+def test_static_suppression_uses_only_the_past_and_removes_a_static_source():
+    """A source that never moves fades out under suppression; later audio never changes earlier windows."""
+    mics = distributed4()
+    audio = _render(np.array([6.0, -4.0, 1.0]), mics, 12.0, snr_db=10.0).astype(np.float32)
+    times = np.arange(2.0, 12.0, 1.0)
+    recipe = phase_recipe("gcc_phat_static")
+    full = PhaseWindows(ArrayAudio(audio, RATE, 0.0, mics), recipe, times)
+    suppressed = [full(i) for i in range(times.size)]
+    plain = [phase_features(audio[:, : int(t * RATE)], RATE, RECIPE).numpy() for t in times]
+    assert suppressed[-1].max() < 0.5 * plain[-1].max()
+    changed = audio.copy()
+    changed[:, int(7.0 * RATE):] = 0.0  # the future of the first windows
+    early = PhaseWindows(ArrayAudio(changed, RATE, 0.0, mics), recipe, times)
+    for i in range(4):  # windows ending at 2..5 s read nothing after 5 s
+        np.testing.assert_array_equal(early(i), suppressed[i])
+    with pytest.raises(ValueError, match="time order"):
+        early(0)
+
+
+def test_srp_phat_localises_a_free_field_source(net):
+    mics = distributed4()
+    source = np.array([3.0, 5.0, 3.0])
+    audio = _render(source, mics, RECIPE.span_seconds + 0.01)
+    assert np.linalg.norm(_locate(net, audio) - source) < 0.3
+
+
+def test_srp_phat_breaks_with_wrong_microphone_positions_or_a_delayed_channel(net):
+    mics = distributed4()
+    source = np.array([3.0, 5.0, 3.0])
+    audio = _render(source, mics, RECIPE.span_seconds + 0.01)
+    swapped = audio[[1, 0, 2, 3]]  # the recording's channels no longer match their positions
+    assert np.linalg.norm(_locate(net, swapped) - source) > 1.0
+    late = audio.copy()
+    late[2] = np.roll(late[2], 12)  # one channel 12 samples (8.7 cm of path) late
+    assert np.linalg.norm(_locate(net, late) - source) > 1.0
+
+
+def test_srp_phat_has_no_parameters_and_gates_noise(net):
+    assert list(net.parameters()) == [] and net.category == "non-learned"
+    noise = np.random.default_rng(3).standard_normal((4, int(RECIPE.span_seconds * RATE) + 10))
+    with torch.no_grad():
+        out = net({"audio_phase": phase_features(noise, RATE, RECIPE)[None]})
+    assert not bool(out["detected"][0]) and float(out["detection_score"][0]) < 1.0
+    np.testing.assert_allclose(out["position"][0].numpy(), net.region.mean(dim=1).numpy(), atol=1e-5)
+
+
+def test_srp_phat_holds_then_falls_back_to_the_sequence_mean(net):
+    mics = distributed4()
+    rng = np.random.default_rng(5)
+    seen = [np.array([3.0, 5.0, 3.0]), np.array([5.0, 7.0, 2.0])]
+    windows = [_render(s, mics, RECIPE.span_seconds + 0.01, seed=i) for i, s in enumerate(seen)]
+    windows += [rng.standard_normal(windows[0].shape)] * 2  # nothing coherent afterwards
+    features = torch.stack([phase_features(w, RATE, RECIPE) for w in windows])
+    times = torch.tensor([10.0, 10.1, 11.0, 20.0], dtype=torch.float64)
+    with torch.no_grad():
+        out = net({"audio_phase": features, "time": times, "sequence": torch.zeros(4, dtype=torch.long)})
+    position = out["position"].numpy()
+    assert out["detected"].tolist() == [True, True, False, False]
+    np.testing.assert_allclose(position[2], position[1])  # held within hold_seconds
+    np.testing.assert_allclose(position[3], position[:2].mean(axis=0), atol=1e-5)  # then the mean of detections
+
+
+def test_a_region_far_from_the_microphones_is_warned_about(caplog):
+    net = get_model("srp_phat", region_min=(100.0, 100.0, 0.5), region_max=(120.0, 130.0, 25.0), null_frames=60)
+    noise = np.random.default_rng(3).standard_normal((4, int(RECIPE.span_seconds * RATE) + 10))
+    with caplog.at_level(logging.WARNING):
+        net({"audio_phase": phase_features(noise, RATE, RECIPE)[None]})
+    assert "search region" in caplog.text and "microphones" in caplog.text

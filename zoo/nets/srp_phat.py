@@ -1,0 +1,385 @@
+"""SRP-PHAT: steered-response-power localisation from the phase recipe, no training.
+
+For every short frame of a window, the steered response of a point ``g`` is the mean over
+microphone pairs of their GCC-PHAT at the pair's delay ``(|g - m_i| - |g - m_j|) / c``. The
+point of highest response is found coarse to fine: a grid over the flight region, where each cell
+scores the largest correlation over the range of delays its volume spans (cells are split near the
+array, where they span more), then cubes of half the step around the best cells, all on the
+window's mean correlation; then, per frame, each of the best candidates is fitted to the delays of
+that frame's correlation peaks near its own (Gauss-Newton), which resolves range from the
+wavefront's curvature where a grid step could not, and scored exactly (linear interpolation
+between lags).
+
+A frame counts as a detection when its peak response exceeds a threshold set from a null statistic:
+the same search on independent white noise per microphone (nothing coherent, like channels shifted
+apart by seconds), at the quantile ``1 - false_alarm``; no ground truth is involved. A window's
+position is the coordinate-wise median of its detected frames. When no frame of a window is
+detected, the last detected position of the same sequence is held for ``hold_seconds``, then the
+mean of the sequence's detections so far is returned (the region's centre before the first one).
+That memory follows the batches' ``sequence`` and ``time`` entries (windows in time order, as the
+test and predict loaders give them); without them every window stands alone.
+
+Outputs: ``position`` (B x 3), ``detection_score`` (B: the window's highest frame response over the
+threshold; above 1 means detected) and ``detected`` (B, bool). ``fit`` trains nothing: the net has
+no trainable parameters, so ``aaute fit`` returns at once and ``aaute test`` evaluates it directly.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from datamodules.features import GccPhat, mic_pairs, phase_recipe, split_frames
+from datamodules.simulate.microphones import mic_geometry
+from zoo.nets.base import TrajectoryNet
+from zoo.registry import register_model
+
+log = logging.getLogger(__name__)
+
+#: the simulator's speed of sound: 331.3 * sqrt(1 + 30 / 273.15) m/s at 30 C (MMAUD V1, Singapore)
+SPEED_OF_SOUND = 349.0
+#: half-widths (in lags) of the max-pooled correlations the coarse levels read
+POOL_WIDTHS = (0, 1, 2, 4, 8, 16, 32, 64)
+#: coarse cells are split until they span at most this many lags (half-range) for every pair
+MAX_COARSE_WIDTH = 32.0
+#: levels refined on a window's mean correlation before its rays are scanned over range
+WINDOW_LEVELS = 2
+#: the delay fit: lags searched around a candidate's delays, Gauss-Newton steps, damping, largest step (m)
+FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 8, 1e-3, 5.0
+
+
+@register_model("srp_phat")
+class SRPPhat(TrajectoryNet):
+    """Steered response power with PHAT weighting over a 3D grid (see the module docstring)."""
+
+    inputs = {"audio_phase": "gcc_phat"}
+    category = "non-learned"
+    trains_position = False
+    context_keys = ("mic_positions", "time", "sequence")
+
+    def __init__(
+        self,
+        in_channels: int = 4,
+        mic_positions: str | list[list[float]] = "distributed4",
+        speed_of_sound: float = SPEED_OF_SOUND,
+        region_min: Sequence[float] = (-2.0, -5.0, 0.5),
+        region_max: Sequence[float] = (8.0, 25.0, 25.0),
+        coarse_step: float = 1.0,
+        fine_step: float = 0.0625,
+        candidates: int = 32,
+        frame_candidates: int = 4,
+        false_alarm: float = 0.01,
+        null_frames: int = 1000,
+        hold_seconds: float = 3.0,
+        input_recipes: dict[str, str] | None = None,
+    ):
+        """Args:
+            mic_positions: the geometry used when a batch carries none (a preset name or channels x 3, m).
+            speed_of_sound: m/s (349: the simulator's 30 C air).
+            region_min, region_max: the search region (m, rig frame); x and y follow the data's
+                ``bev_bounds`` when the task sets them. The default is the MMAUD flight region.
+            coarse_step: the grid's cell side (m) far from the array; cells are halved near it, down to
+                ``fine_step``.
+            candidates: best cells kept at each level of a window's search.
+            frame_candidates: best cells kept per frame before the exact last level.
+            false_alarm: share of null frames allowed over the detection threshold.
+            null_frames: frames of white noise that set the threshold.
+            hold_seconds: how long a sequence keeps its last detection before falling back to its mean.
+        """
+        super().__init__(in_channels, input_recipes=input_recipes)
+        self.recipe = phase_recipe(self.inputs["audio_phase"])
+        self.default_mics = torch.as_tensor(mic_geometry(mic_positions), dtype=torch.float64)
+        if self.default_mics.shape[0] != in_channels:
+            raise ValueError(f"srp_phat: {self.default_mics.shape[0]} mic positions for in_channels {in_channels}")
+        self.speed_of_sound = float(speed_of_sound)
+        self.region = torch.tensor([region_min, region_max], dtype=torch.float64).T  # 3 x 2
+        if self.region.shape != (3, 2) or bool((self.region[:, 0] >= self.region[:, 1]).any()):
+            raise ValueError(f"srp_phat region must be 3 mins below 3 maxes, got {region_min} {region_max}")
+        self.coarse_step, self.fine_step = float(coarse_step), float(fine_step)
+        self.frame_candidates = int(frame_candidates)
+        self.candidates, self.false_alarm, self.null_frames = int(candidates), float(false_alarm), int(null_frames)
+        self.hold_seconds = float(hold_seconds)
+        self._thresholds: dict[bytes, float] = {}
+        self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self._tracks: dict[int, dict] = {}  #: sequence index -> hold/fallback memory
+
+    # ------------------------------------------------------------------------------ configuration
+
+    def set_bounds(self, bounds: list[list[float]] | torch.Tensor) -> None:
+        """Search x and y inside the data's bird's-eye area [[x_min, x_max], [y_min, y_max]] (m)."""
+        new = torch.as_tensor(bounds, dtype=torch.float64)
+        if new.shape != (2, 2) or bool((new[:, 0] >= new[:, 1]).any()):
+            raise ValueError(f"bounds must be [[x_min, x_max], [y_min, y_max]] with min < max, got {bounds}")
+        self.region = torch.cat([new, self.region[2:]])
+        self._coarse.clear()
+        self._thresholds.clear()
+
+    def reduced_settings(self) -> dict[str, str]:
+        return {}
+
+    def _check_region(self, mics: torch.Tensor) -> None:
+        centre = mics.mean(dim=0)
+        outside = (centre < self.region[:, 0] - 5.0) | (centre > self.region[:, 1] + 5.0)
+        if bool(outside.any()):
+            log.warning("srp_phat: the search region %s lies more than 5 m from the microphones' centre %s; "
+                        "check region_min/region_max and the data's bev_bounds",
+                        self.region.tolist(), [round(v, 2) for v in centre.tolist()])
+
+    # ------------------------------------------------------------------------------ search
+
+    def _pair_geometry(self, points: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """For ``points`` (... x 3): each pair's fractional lag column and the norm of the gradient of
+        its path difference (``|u_i - u_j|`` for unit vectors from the mics, 0..2), both ... x pairs."""
+        pairs = mic_pairs(mics.shape[0])
+        first = torch.tensor([i for i, _ in pairs])
+        second = torch.tensor([j for _, j in pairs])
+        mics = mics.to(points.dtype)
+        flat = points.reshape(-1, 3)
+        cross = flat @ mics.T  # M x C
+        squared = (flat * flat).sum(dim=1, keepdim=True)
+        mic_squared = (mics * mics).sum(dim=1)
+        distance = (squared - 2 * cross + mic_squared).clamp_min(1e-12).sqrt()
+        delay = (distance[:, first] - distance[:, second]) / self.speed_of_sound
+        half = (self.recipe.num_lags() - 1) // 2
+        position = delay * self.recipe.lag_rate + half
+        dot = squared - cross[:, first] - cross[:, second] + (mics[first] * mics[second]).sum(dim=1)
+        cosine = dot / (distance[:, first] * distance[:, second])
+        gradient = (2 - 2 * cosine).clamp_min(0).sqrt()
+        shape = (*points.shape[:-1], len(pairs))
+        return position.reshape(shape), gradient.reshape(shape)
+
+    def _coarse_grid(self, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The coarse cells (centres G x 3 and sides G) and their columns in the flattened pooled
+        correlations (G x pairs), computed once per geometry.
+
+        Cells of ``coarse_step`` are split into eight until the delays each spans stay within
+        ``MAX_COARSE_WIDTH`` lags (cells near the array span many more than far ones), so every cell's
+        pooled score bounds its contents about equally tightly and a far peak is not crowded out of
+        the candidates by loose near cells.
+        """
+        key = mics.numpy().tobytes()
+        if key not in self._coarse:
+            axes = [torch.arange(float(lo) + self.coarse_step / 2, float(hi), self.coarse_step, dtype=torch.float64)
+                    for lo, hi in self.region]
+            centres, sides = torch.cartesian_prod(*axes).float(), []
+            step, done = self.coarse_step, []
+            offsets = torch.cartesian_prod(*[torch.tensor([-0.25, 0.25])] * 3)
+            while centres.numel():
+                width = self._pair_geometry(centres, mics)[1].amax(dim=1) * self._lag_scale(step)
+                keep = (width <= MAX_COARSE_WIDTH) | (step / 2 < self.fine_step)
+                done.append(centres[keep])
+                sides.append(torch.full((int(keep.sum()),), step))
+                centres = (centres[~keep][:, None, :] + offsets * step).reshape(-1, 3)
+                step /= 2
+            grid, side = torch.cat(done), torch.cat(sides)
+            self._coarse[key] = (grid, side, self._columns(grid, mics, side[:, None]))
+        return self._coarse[key]
+
+    def _lag_scale(self, step: float | torch.Tensor) -> float | torch.Tensor:
+        """Lags spanned per unit gradient of path difference by a cube of side ``step`` (half-diagonal)."""
+        return step * (math.sqrt(3) / 2) / self.speed_of_sound * self.recipe.lag_rate
+
+    def _columns(self, points: torch.Tensor, mics: torch.Tensor, step: float | torch.Tensor) -> torch.Tensor:
+        """Column of each point (... x 3) and pair in the flattened pooled correlations -> ... x pairs."""
+        pairs = len(mic_pairs(mics.shape[0]))
+        lags = self.recipe.num_lags()
+        position, gradient = self._pair_geometry(points, mics)
+        width = gradient * self._lag_scale(step)
+        level = torch.bucketize(width.ceil(), torch.tensor(POOL_WIDTHS, dtype=width.dtype))
+        level = level.clamp(max=len(POOL_WIDTHS) - 1)
+        index = position.round().long()
+        outside = (index < 0) | (index >= lags)
+        columns = (level * pairs + torch.arange(pairs)) * lags + index.clamp(0, lags - 1)
+        return torch.where(outside, torch.full_like(columns, -1), columns)  # -1: the zero column appended
+
+    @staticmethod
+    def _gather(flat: torch.Tensor, columns: torch.Tensor) -> torch.Tensor:
+        """Mean over pairs of ``flat`` (N x columns, a zero column last) at ``columns`` (N x K x P or K x P)."""
+        if columns.dim() == 2:
+            return flat[:, columns].mean(dim=-1)
+        rows = torch.arange(flat.shape[0])[:, None, None]
+        return flat[rows, columns].mean(dim=-1)
+
+    def _exact(self, correlation: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
+        """Mean pair correlation (N x P x L) at ``points`` (N x K x 3), linearly interpolated between lags."""
+        lags = correlation.shape[-1]
+        position = self._pair_geometry(points, mics)[0]  # N x K x P
+        low = position.floor().clamp(0, lags - 2)
+        frac = (position - low).clamp(0, 1)
+        low = low.long()
+        batch = torch.arange(correlation.shape[0])[:, None, None]
+        pairs = torch.arange(correlation.shape[1])
+        a, b = correlation[batch, pairs, low], correlation[batch, pairs, low + 1]
+        inside = (position >= 0) & (position <= lags - 1)
+        return torch.where(inside, a + frac * (b - a), torch.zeros((), dtype=a.dtype)).mean(dim=-1)
+
+    def _refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor,
+                keep: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One level: the 27 cubes of half the step around each point (N x k x 3), scored on the pooled
+        correlations; the ``keep`` best (points, steps, scores)."""
+        n = points.shape[0]
+        offsets = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)  # 27 x 3
+        steps = steps / 2
+        children = self._clamp((points[:, :, None, :] + offsets * steps[..., None, None]).reshape(n, -1, 3))
+        child_steps = steps[:, :, None].expand(-1, -1, offsets.shape[0]).reshape(n, -1)
+        scores = self._gather(flat, self._columns(children, mics, child_steps[..., None]))
+        best = scores.topk(min(keep, children.shape[1]), dim=1)
+        return (torch.gather(children, 1, best.indices[..., None].expand(-1, -1, 3)),
+                torch.gather(child_steps, 1, best.indices), best.values)
+
+    def _clamp(self, points: torch.Tensor) -> torch.Tensor:
+        return torch.maximum(torch.minimum(points, self.region[:, 1].float()), self.region[:, 0].float())
+
+    def _search(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags).
+
+        The grid levels search each window once, on its frames' mean correlation (non-coherent, so
+        the slow drift of the delays within a window does not cancel it); then each frame fits the
+        window's best candidates to its own pair delays and keeps the one of highest exact response.
+        """
+        b, f, p, lags = correlation.shape
+        corr = correlation.to(torch.float32)
+        mean = corr.mean(dim=1)
+        grid, sides, columns = self._coarse_grid(mics)
+        k = min(self.candidates, grid.shape[0])
+        flat = self._pooled(mean)
+        best = self._gather(flat, columns).topk(k, dim=1)  # B x G -> B x k
+        points, steps = grid[best.indices], sides[best.indices]
+        for _ in range(WINDOW_LEVELS):
+            points, steps, _ = self._refine(flat, points, steps, mics, k)
+        points = points[:, : self.frame_candidates]
+        # per frame: fit the candidate to the pair delays measured near its own, then score it exactly
+        frames = corr.reshape(b * f, p, lags)
+        points = self._fit_delays(frames, points.repeat_interleave(f, dim=0), mics)
+        scores = self._exact(frames, points, mics)
+        top = scores.argmax(dim=1)
+        rows = torch.arange(b * f)
+        return points[rows, top].reshape(b, f, 3), scores[rows, top].reshape(b, f)
+
+    def _fit_delays(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
+        """Move each candidate (N x K x 3) to the point whose pair delays best match the frame's.
+
+        For every pair, the correlation peak within ``FIT_SEARCH`` lags of the candidate's delay is
+        located to a fraction of a lag (parabola through the peak and its neighbours); a few damped
+        Gauss-Newton steps then fit the point to those delays, weighted by the peaks' heights. The
+        delays pin the direction, and their small differences (the wavefront's curvature) the range,
+        which a grid search cannot resolve without a grid finer than its cost allows.
+        """
+        n, k = points.shape[:2]
+        lags = frames.shape[-1]
+        position = self._pair_geometry(points, mics)[0]  # N x K x P
+        window = torch.arange(-FIT_SEARCH, FIT_SEARCH + 1)
+        index = (position.round().long()[..., None] + window).clamp(1, lags - 2)  # N x K x P x W
+        batch = torch.arange(n)[:, None, None, None]
+        pairs = torch.arange(frames.shape[1])[None, None, :, None]
+        values = frames[batch, pairs, index]
+        peak = values.argmax(dim=-1, keepdim=True)
+        centre = torch.gather(index, -1, peak)[..., 0]
+        y0, y1, y2 = (frames[batch[..., 0], pairs[..., 0], centre + d] for d in (-1, 0, 1))
+        curvature = y0 - 2 * y1 + y2
+        shift = torch.where(curvature < 0, 0.5 * (y0 - y2) / curvature.clamp(max=-1e-9), torch.zeros_like(y1))
+        measured = centre.to(frames.dtype) + shift.clamp(-0.5, 0.5)
+        weight = y1.clamp_min(0.0) + 1e-3
+        pair_index = mic_pairs(mics.shape[0])
+        first = torch.tensor([i for i, _ in pair_index])
+        second = torch.tensor([j for _, j in pair_index])
+        scale = self.recipe.lag_rate / self.speed_of_sound
+        m = mics.to(points.dtype)
+        for _ in range(FIT_STEPS):
+            direction = points[..., None, :] - m  # N x K x C x 3
+            unit = direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-6)
+            jacobian = (unit[..., first, :] - unit[..., second, :]) * scale  # N x K x P x 3
+            residual = self._pair_geometry(points, mics)[0] - measured  # N x K x P
+            jw = jacobian * weight[..., None]
+            normal = jw.transpose(-1, -2) @ jacobian
+            damping = FIT_DAMPING * normal.diagonal(dim1=-2, dim2=-1).mean(dim=-1)[..., None, None]
+            normal = normal + damping * torch.eye(3)
+            step = torch.linalg.solve(normal, -(jw.transpose(-1, -2) @ residual[..., None]))[..., 0]
+            points = self._clamp(points + step.clamp(-FIT_MAX_STEP, FIT_MAX_STEP))
+        return points
+
+    @staticmethod
+    def _pooled(corr: torch.Tensor) -> torch.Tensor:
+        """N x pairs x lags -> N x (levels * pairs * lags + 1): max-pooled at POOL_WIDTHS, flattened, a zero last."""
+        pooled = torch.stack([corr if w == 0 else F.max_pool1d(corr, 2 * w + 1, stride=1, padding=w)
+                              for w in POOL_WIDTHS], dim=1)
+        return torch.cat([pooled.reshape(corr.shape[0], -1), torch.zeros(corr.shape[0], 1)], dim=1)
+
+    # ------------------------------------------------------------------------------ null statistic
+
+    def threshold(self, mics: torch.Tensor) -> float:
+        """The detection threshold for a geometry: the ``1 - false_alarm`` quantile of the null peak response."""
+        key = mics.numpy().tobytes()
+        if key not in self._thresholds:
+            sample_rate = 48000.0
+            gcc = GccPhat(self.recipe, sample_rate, mics.shape[0])
+            generator = np.random.default_rng(0)
+            frames_per_window = self.recipe.frames
+            windows = max(1, math.ceil(self.null_frames / frames_per_window))
+            noise = generator.standard_normal((mics.shape[0], windows * frames_per_window * gcc.frame))
+            frames = split_frames(noise.astype(np.float32), gcc.frame, windows * frames_per_window)
+            correlation = gcc.correlate(gcc.cross_spectra(frames))  # P x (windows * F) x L
+            correlation = correlation.reshape(-1, windows, frames_per_window, correlation.shape[-1])
+            peaks = [self._search(correlation.permute(1, 2, 0, 3)[start:start + 64], mics)[1].flatten()
+                     for start in range(0, windows, 64)]
+            value = float(torch.quantile(torch.cat(peaks), 1.0 - self.false_alarm))
+            self._thresholds[key] = value
+            log.info("srp_phat: detection threshold %.4f (null quantile %.3f of %d white-noise frames)", value,
+                     1.0 - self.false_alarm, self.null_frames)
+        return self._thresholds[key]
+
+    # ------------------------------------------------------------------------------ forward
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        phase = inputs["audio_phase"]
+        b, p, f, lags = phase.shape
+        mics_batch = inputs.get("mic_positions")
+        positions = torch.empty(b, 3)
+        scores = torch.empty(b)
+        detected = torch.empty(b, dtype=torch.bool)
+        groups = [(self.default_mics, torch.arange(b))]
+        if mics_batch is not None:
+            unique, inverse = torch.unique(mics_batch.detach().cpu().double(), dim=0, return_inverse=True)
+            groups = [(unique[g], torch.nonzero(inverse == g).flatten()) for g in range(unique.shape[0])]
+        with torch.no_grad():
+            for mics, rows in groups:
+                if mics.shape[0] != self.in_channels or len(mic_pairs(mics.shape[0])) != p:
+                    raise ValueError(f"srp_phat: {mics.shape[0]} mic positions for phase features of {p} pairs")
+                if mics.numpy().tobytes() not in self._thresholds:
+                    self._check_region(mics)
+                threshold = self.threshold(mics)
+                points, peak = self._search(phase[rows].detach().cpu().permute(0, 2, 1, 3), mics)
+                hit = peak > threshold
+                masked = torch.where(hit[..., None], points, torch.full_like(points, float("nan")))
+                positions[rows] = masked.nanmedian(dim=1).values
+                scores[rows] = peak.max(dim=1).values / threshold
+                detected[rows] = hit.any(dim=1)
+        positions = self._hold_or_fallback(positions, detected, inputs.get("sequence"), inputs.get("time"))
+        return {"position": positions.to(phase.dtype).to(phase.device),
+                "detection_score": scores.to(phase.dtype).to(phase.device), "detected": detected.to(phase.device)}
+
+    def _hold_or_fallback(self, positions: torch.Tensor, detected: torch.Tensor, sequence: torch.Tensor | None,
+                          time: torch.Tensor | None) -> torch.Tensor:
+        centre = self.region.mean(dim=1).float()
+        if sequence is None or time is None:
+            return torch.where(detected[:, None], positions, centre)
+        out = positions.clone()
+        for i, (seq, t) in enumerate(zip(sequence.tolist(), time.tolist(), strict=True)):
+            track = self._tracks.get(seq)
+            if track is None or t < track["time"]:  # a new sequence, or the same one again from its start
+                track = self._tracks[seq] = {"time": t, "last": None, "last_time": -math.inf, "sum": 0.0, "count": 0}
+            track["time"] = t
+            if bool(detected[i]):
+                track.update(last=positions[i], last_time=t, sum=track["sum"] + positions[i], count=track["count"] + 1)
+            elif track["last"] is not None and t - track["last_time"] <= self.hold_seconds:
+                out[i] = track["last"]
+            elif track["count"]:
+                out[i] = track["sum"] / track["count"]
+            else:
+                out[i] = centre
+        return out
