@@ -7,6 +7,8 @@ from typing import Any
 
 from torch import nn
 
+from datamodules.errors import ConfigError
+
 _MODELS: dict[str, type[nn.Module]] = {}
 
 
@@ -33,7 +35,7 @@ def model_class(name: str) -> type[nn.Module]:
     try:
         return _MODELS[name]
     except KeyError:
-        raise ValueError(f"unknown model {name!r}; known models: {', '.join(list_models())}") from None
+        raise ConfigError(f"unknown model {name!r}; known models: {', '.join(list_models())}") from None
 
 
 def get_model(name: str, **kwargs: Any) -> nn.Module:
