@@ -264,7 +264,11 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
     class _CLI(LightningCLI):
         def instantiate_classes(self) -> None:
             if instantiate:
-                super().instantiate_classes()
+                try:
+                    super().instantiate_classes()
+                except ValueError as error:  # jsonargparse keeps only the text of the class's own error
+                    _raise_project_error(self.config, error)
+                    raise
 
         def _parse_ckpt_path(self) -> None:
             # Lightning merges a checkpoint's hyperparameters over the command line; where this run writes
@@ -288,6 +292,29 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
     )
 
 
+def _raise_project_error(config, error: ValueError) -> None:
+    """Build the model and data classes of ``config`` again, so that their own project error surfaces.
+
+    jsonargparse reports a failing ``__init__`` as a ValueError holding the text of every attempt; the
+    project error (an unknown net, an alpha outside [0, 1], ...) is raised here by type instead.
+    """
+    import importlib
+
+    subcommand = config.get("subcommand")
+    section = config[subcommand] if subcommand else config
+    for key in ("model", "data"):
+        entry = section.get(key)
+        if not entry or not getattr(entry, "class_path", None):
+            continue
+        module_name, _, class_name = entry.class_path.rpartition(".")
+        cls = getattr(importlib.import_module(module_name), class_name)
+        init_args = entry.init_args.as_dict() if entry.get("init_args") is not None else {}
+        try:
+            cls(**init_args)
+        except AauteError as project_error:
+            raise project_error from error
+
+
 def lightning_main(argv: Sequence[str] | None) -> None:
     """``aaute fit|validate|test|predict``."""
     lightning_cli(argv)
@@ -304,9 +331,9 @@ def report_error(error: BaseException) -> None:
     sys.stderr.write(f"aaute: error: {message} (--debug for the traceback)\n")
 
 
-def _run(argv: list[str], extra: Callable[[argparse._SubParsersAction], None] | None) -> int:
+def _run(argv: list[str], extra: Callable[[argparse._SubParsersAction], None] | None, from_sys_argv: bool) -> int:
     if argv and argv[0] in LIGHTNING_COMMANDS:
-        lightning_main(argv)
+        lightning_main(None if from_sys_argv else argv)
         return 0
     args = build_parser(extra).parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
@@ -322,11 +349,14 @@ def main(argv: Sequence[str] | None = None,
     Project errors (:data:`USER_ERRORS`) print one line and return 2; Ctrl-C prints one line and returns
     130. With ``--debug`` (anywhere on the command line) or ``AAUTE_DEBUG=1`` both raise with their traceback.
     """
+    from_sys_argv = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = debug_requested(argv)
     argv = [word for word in argv if word != "--debug"]
+    if from_sys_argv:
+        sys.argv[1:] = argv  # LightningCLI reads sys.argv itself when it is given no list
     try:
-        return _run(argv, extra)
+        return _run(argv, extra, from_sys_argv)
     except USER_ERRORS as error:
         if debug:
             raise

@@ -39,8 +39,16 @@ def model_class(name: str) -> type[nn.Module]:
 
 
 def get_model(name: str, **kwargs: Any) -> nn.Module:
-    """Build the network registered as ``name`` with ``kwargs``."""
-    return model_class(name)(**kwargs)
+    """Build the network registered as ``name`` with ``kwargs`` (an argument it does not take: ConfigError)."""
+    import inspect
+
+    cls = model_class(name)
+    try:
+        inspect.signature(cls).bind(**kwargs)
+    except TypeError as error:
+        known = ", ".join(p for p in inspect.signature(cls).parameters if p not in ("args", "kwargs"))
+        raise ConfigError(f"model {name!r}: {error} (net_kwargs); its arguments: {known}") from None
+    return cls(**kwargs)
 
 
 def list_models() -> list[str]:

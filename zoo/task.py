@@ -103,7 +103,12 @@ class TrajectoryTask(L.LightningModule):
                 f"set data inputs to {wanted}"
             )
         if not self._checked_inputs:
-            self.net.check_inputs(batch)
+            try:
+                self.net.check_inputs(batch)
+            except ConfigError as error:
+                every = torch.ones(len(batch["gt"]), dtype=torch.bool) if "gt" in batch else None
+                source = f" (batch from {self._where(batch, every)})" if every is not None else ""
+                raise ConfigError(f"{error}{source}") from None
             self._checked_inputs = True
         return {name: batch[name] for name in wanted}
 
@@ -163,21 +168,27 @@ class TrajectoryTask(L.LightningModule):
     def _where(self, batch: dict[str, torch.Tensor], rows: torch.Tensor) -> str:
         """The recordings and times of batch ``rows`` (a boolean mask), for error messages."""
         names = self._sequence_names() if self._trainer is not None else []
-        found = torch.flatnonzero(rows).tolist()
-        places = []
-        for i in found[:3]:
+        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        paths = list(getattr(datamodule, "sequence_paths", []))
+        found = torch.nonzero(rows).flatten().tolist()
+        times: dict[str, list[str]] = {}
+        for i in found:
             index = int(batch["sequence"][i]) if "sequence" in batch else -1
             name = names[index] if 0 <= index < len(names) else f"sequence {index}"
-            time = f" t = {float(batch['time'][i]):.3f} s" if "time" in batch else ""
-            places.append(f"{name}{time}")
-        more = f" and {len(found) - 3} more" if len(found) > 3 else ""
-        return ", ".join(places) + more
+            if 0 <= index < len(paths):
+                name += f" ({paths[index]})"
+            times.setdefault(name, [])
+            if "time" in batch and len(times[name]) < 3:
+                times[name].append(f"{float(batch['time'][i]):.3f}")
+        return "; ".join(f"{name} at t = {', '.join(t)}{' ...' if len(t) == 3 else ''} s" if t else name
+                         for name, t in times.items())
 
     def _check_finite(self, total: torch.Tensor, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor],
                       stage: str) -> None:
         """Raise :class:`NonFiniteLossError` naming the windows behind a NaN or infinite loss."""
         if bool(torch.isfinite(total)):
             return
+        total = total.detach()
         for name in ("gt", "pseudo"):
             rows = batch[f"{name}_valid"] & ~torch.isfinite(batch[name]).all(dim=1)
             if rows.any():
