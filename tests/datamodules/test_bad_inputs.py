@@ -331,3 +331,53 @@ def test_label_reports_nan_ground_truth_instead_of_a_nan_score(simulated_dir, tm
     assert "nan_gt.mcap /ground_truth: 1 labelled position(s) are NaN or infinite, first at index 7" in out
     assert "mean_m nan" not in out
     assert tree_hashes(tmp_path) == before
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_simulate_at_once_and_a_rerun_resumes(tmp_path):
+    """SIGINT while two workers simulate: exit 130 without a traceback, no temporary file, finished files kept."""
+    import signal
+    import subprocess
+    import sys
+
+    out = tmp_path / "sim"
+    command = [sys.executable, "-m", "benchmarks.cli", "simulate", "--out", str(out), "--sequences", "6",
+               "--seconds", "1", "--no-camera", "--workers", "2"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 600
+    while not list(out.glob("*.mcap")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=300)
+    assert process.returncode == 130, err
+    assert "Traceback" not in err and "run the same command again to resume" in err and "aaute: interrupted" in err
+    assert not [p for p in out.iterdir() if ".tmp-" in p.name]
+    finished = tree_hashes(out)
+    assert 1 <= len(finished) < 6
+    for name in finished:
+        assert open_recording(out / name).audio is not None  # complete, readable files only
+    assert subprocess.run(command, env=env, capture_output=True).returncode == 0
+    again = tree_hashes(out)
+    assert len(again) == 6 and all(again[name] == digest for name, digest in finished.items())
+
+
+def test_convert_refuses_to_drop_lidar_topics_it_cannot_place(tmp_path, capsys, caplog):
+    pytest.importorskip("rosbags")
+    from tests.datamodules.test_format_rosbag1 import write_flight
+
+    flight = tmp_path / "flight"
+    write_flight(flight, mid360_topic="/points_raw")  # a PointCloud2 topic whose name names no sensor
+    before = tree_hashes(flight)
+    out = tmp_path / "out"
+    assert main(["convert", str(flight), str(out)]) == 2
+    lines = message_lines(*capsys.readouterr())
+    assert len(lines) == 1 and f"{flight}: LiDAR topic(s) /points_raw" in lines[0]
+    assert "not mapped to a sensor and would be lost" in lines[0] and "--drop-unread-lidar" in lines[0]
+    assert not out.exists() and tree_hashes(flight) == before
+    assert main(["convert", str(flight), str(out), "--drop-unread-lidar"]) == 0
+    written = next(out.glob("*.mcap"))
+    assert "dropped LiDAR topic(s) /points_raw" in caplog.text
+    rec = open_recording(written)
+    assert rec.meta["dropped_lidar_topics"] == ["/points_raw"] and "mid360" not in rec.lidar
+    assert main(["convert", str(written), str(tmp_path / "again")]) == 0  # the written file converts as it is
