@@ -381,3 +381,20 @@ def test_convert_refuses_to_drop_lidar_topics_it_cannot_place(tmp_path, capsys, 
     rec = open_recording(written)
     assert rec.meta["dropped_lidar_topics"] == ["/points_raw"] and "mid360" not in rec.lidar
     assert main(["convert", str(written), str(tmp_path / "again")]) == 0  # the written file converts as it is
+
+
+@pytest.mark.parametrize(("given", "words"), [
+    (["--channels", "2"], ["4 channel(s) at 48000 Hz", "not the 2 channel(s) stated", "give the right channel count"]),
+    (["--sample-rate", "44100"], ["48000 samples/s but the sample rate is 44100 Hz", "give the right sample rate"]),
+])
+def test_a_wrong_channel_count_for_a_bag_is_named_as_such(given, words, tmp_path, capsys):
+    pytest.importorskip("rosbags")
+    from tests.datamodules.test_format_rosbag1 import write_flight
+
+    flight = tmp_path / "flight"
+    write_flight(flight, audio="plain", info=False, lidar=False, gt=False)  # 4 channels, S16LE, no AudioInfo
+    assert main(["info", str(flight), *given]) == 1
+    lines = message_lines(*capsys.readouterr())
+    assert len(lines) == 1 and "mavic2.bag /audio/audio (parameters)" in lines[0], lines
+    for word in words:
+        assert word in lines[0], (word, lines[0])
