@@ -12,9 +12,6 @@ import dataclasses
 import hashlib
 import json
 import logging
-import multiprocessing
-import signal
-import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -42,6 +39,7 @@ from datamodules.simulate import scene as scene_sim
 from datamodules.simulate.acoustics import AudioConfig, render_audio
 from datamodules.simulate.drones import drone_spec
 from datamodules.simulate.trajectory import TrajectoryConfig, generate_trajectory
+from datamodules.workers import interruptible_pool
 
 log = logging.getLogger(__name__)
 
@@ -213,12 +211,6 @@ def _simulate_one(args: tuple[Path, SimulationConfig, int, int]) -> Path:
     return path
 
 
-def _worker_signals() -> None:
-    """In a pool worker: Ctrl-C is the parent's to handle; termination unwinds, removing temporary files."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(1))
-
-
 def simulate_dataset(
     out_dir: str | Path,
     sequences: int,
@@ -247,7 +239,7 @@ def simulate_dataset(
     try:
         if workers > 1 and len(todo) > 1:
             # leaving the block terminates the workers at once: Ctrl-C starts no further recording
-            with multiprocessing.get_context().Pool(min(workers, len(todo)), initializer=_worker_signals) as pool:
+            with interruptible_pool(min(workers, len(todo))) as pool:
                 for _ in pool.imap_unordered(_simulate_one, todo):
                     finished += 1
                     bar.update()
