@@ -40,7 +40,8 @@ def scan_audio(audio: AudioStream, what: str) -> None:
     block = max(1, int(SCAN_BLOCK_SECONDS * audio.sample_rate))
     for start in range(0, audio.num_samples, block):
         samples = audio.read(start, min(start + block, audio.num_samples))
-        check_finite_audio(samples, audio.t0 + start / audio.sample_rate, audio.sample_rate, f"{what} audio")
+        check_finite_audio(samples, audio.t0 + start / audio.sample_rate, audio.sample_rate, f"{what} audio",
+                           audio.t0)
 
 
 def describe(path: Path, sample_frames: int = 5, **options: Any) -> dict[str, Any]:

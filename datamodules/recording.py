@@ -186,8 +186,10 @@ def check_audio_rate(values: np.ndarray, steps_s: np.ndarray, rate: float, chann
     )
 
 
-def check_finite_audio(block: np.ndarray, t0: float, sample_rate: float, what: str) -> None:
-    """Refuse audio samples that are NaN or infinite, naming the time of the first (``block`` starts at ``t0``).
+def check_finite_audio(block: np.ndarray, t0: float, sample_rate: float, what: str,
+                       audio_t0: float | None = None) -> None:
+    """Refuse audio samples that are NaN or infinite, naming the time of the first (``block`` starts at ``t0``;
+    ``audio_t0``, the time of the audio's first sample, adds the time into the recording).
 
     Raises:
         RecordingError: with the channel, sample time and count of the bad samples.
@@ -195,10 +197,13 @@ def check_finite_audio(block: np.ndarray, t0: float, sample_rate: float, what: s
     finite = np.isfinite(block)
     if finite.all():
         return
-    channel, sample = np.argwhere(~finite)[np.argmin(np.argwhere(~finite)[:, 1])]
+    bad = np.argwhere(~finite)
+    channel, sample = bad[np.argmin(bad[:, 1])]
+    t = t0 + sample / sample_rate
+    into = f", {t - audio_t0:.3f} s into the audio" if audio_t0 is not None else ""
     raise RecordingError(
-        f"{what}: {int((~finite).sum())} NaN or infinite audio sample(s), first at t = "
-        f"{t0 + sample / sample_rate:.3f} s (channel {int(channel)}); expected finite samples"
+        f"{what}: {len(bad)} NaN or infinite audio sample(s), first at t = {t:.3f} s{into} "
+        f"(channel {int(channel)}); expected finite samples"
     )
 
 

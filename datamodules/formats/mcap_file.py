@@ -192,7 +192,7 @@ def _write_audio(writer: Writer, schemas: dict, audio: AudioStream, sample_forma
         samples = audio.read(start, min(start + block, audio.num_samples))
         if samples.shape[0] != audio.num_channels:
             raise RecordingError(f"audio has {samples.shape[0]} channels but {audio.num_channels} mic positions")
-        check_finite_audio(samples, audio.t0 + start / rate, rate, "audio to write")
+        check_finite_audio(samples, audio.t0 + start / rate, rate, "audio to write", audio.t0)
         for offset in range(0, samples.shape[1], chunk):
             first = start + offset
             ns = int(seconds_to_ns(audio.t0 + first / rate))
@@ -485,7 +485,7 @@ class McapAudio(AudioStream):
         block = (raw.reshape(-1, self.num_channels).T / self._scale).astype(np.float32)
         if self._dtype.kind == "f":
             check_finite_audio(block, float(ns_to_seconds(self._stamps[position])), self.sample_rate,
-                               f"{self._index.path} {TOPIC_AUDIO}[{position}]")
+                               f"{self._index.path} {TOPIC_AUDIO}[{position}]", self.t0)
         return block
 
 
