@@ -42,6 +42,7 @@ from benchmarks.results import (
     read_results,
 )
 from datamodules.atomic import atomic_write
+from datamodules.errors import AauteError
 
 if TYPE_CHECKING:
     from benchmarks.plots import Plot
@@ -69,7 +70,7 @@ PROFILE_KEYS = ["params_total_M", "params_used_M", "gmacs", "gflops", "latency_m
 TRUE = {"true", "1", "yes", "y"}
 
 
-class LeaderboardError(ValueError):
+class LeaderboardError(AauteError, ValueError):
     """``results.csv`` can be read but holds nothing to render (the message says why)."""
 
 

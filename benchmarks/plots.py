@@ -21,6 +21,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from datamodules.atomic import atomic_write
+from datamodules.errors import AauteError
 
 PREDICTION_COLUMNS = ("sequence_id", "recording_id", "drone", "light", "timestamp", "x", "y", "z",
                       "gt_x", "gt_y", "gt_z", "gt_valid", "smooth_x", "smooth_y", "smooth_z")
@@ -31,7 +32,7 @@ DPI = 100
 MARGINS = {"left": 0.09, "right": 0.98, "bottom": 0.12, "top": 0.92}
 
 
-class PredictionsError(ValueError):
+class PredictionsError(AauteError, ValueError):
     """A predictions CSV that is missing or does not have the expected columns."""
 
 

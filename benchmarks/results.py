@@ -25,6 +25,7 @@ from typing import Any
 import pandas as pd
 
 from datamodules.atomic import atomic_write
+from datamodules.errors import AauteError
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +60,7 @@ PROVENANCE = ["config_hash", "checkpoint_path", "predictions_path", "git_commit"
 COLUMNS = IDENTITY + METHOD + DATA + BUDGET + METRICS + BREAKDOWN + PROFILE + PROVENANCE
 
 
-class ResultsError(ValueError):
+class ResultsError(AauteError, ValueError):
     """A ``results.csv`` that cannot be read as this schema (the message names the file and the problem)."""
 
 

@@ -46,6 +46,7 @@ from typing import Any
 import yaml
 
 from benchmarks.results import LIGHTS, PROTOCOLS
+from datamodules.errors import AauteError
 
 SUITE_KEYS = {"name", "description", "out", "data", "trainer", "protocols", "lights", "seeds", "smoothing",
               "constant", "models", "profile", "launcher", "expected_runtime"}
@@ -61,7 +62,7 @@ METHOD_NAMES = {"student": "Ours (AAUTE student)", "audionet": "AudioNet", "vora
                 "darknet": "DarkNet", "srp_phat": "SRP-PHAT"}
 
 
-class SuiteError(ValueError):
+class SuiteError(AauteError, ValueError):
     """A suite file that cannot run (the message names the file and the key)."""
 
 

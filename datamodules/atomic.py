@@ -1,20 +1,81 @@
 """Atomic file writes: write a temporary sibling, make it durable, then rename it into place.
 
 An interrupted or failing write therefore never leaves a half-written file under the final name,
-and never destroys the file that was there before.
+and never destroys the file that was there before. The temporary file is named
+``.<name>.tmp-<pid>`` and locked (``flock``) while it is written; a process killed outright
+(SIGKILL, power loss) leaves it behind unlocked, and the next write of the same file removes it
+and says so.
 """
 
 from __future__ import annotations
 
+import fcntl
+import logging
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+log = logging.getLogger(__name__)
+
+TEMPORARY_MARK = ".tmp-"  #: temporary files are ``.<name>.tmp-<pid>``
+
+
+def temporary_path(path: str | Path, pid: int | None = None) -> Path:
+    """The temporary sibling a write of ``path`` by process ``pid`` (default this one) uses."""
+    path = Path(path)
+    return path.with_name(f".{path.name}{TEMPORARY_MARK}{os.getpid() if pid is None else pid}")
+
+
+def remove_stale_temporaries(path: str | Path) -> list[Path]:
+    """Remove temporary files of earlier, interrupted writes of ``path``; return the removed ones.
+
+    A temporary file is stale when no process holds its lock and it was last written before this
+    process started; a write in progress (locked) is left alone.
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    started = _process_start_time()
+    removed = []
+    for candidate in path.parent.glob(f".{path.name}{TEMPORARY_MARK}*"):
+        if candidate == temporary_path(path) or not candidate.is_file():
+            continue
+        try:
+            stat = candidate.stat()
+            if stat.st_mtime >= started:
+                continue
+            with open(candidate, "rb") as handle:
+                try:
+                    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except BlockingIOError:
+                    continue  # another process is writing it
+                candidate.unlink()
+        except FileNotFoundError:
+            continue
+        removed.append(candidate)
+        log.warning("removed %s (%.1f MB), the temporary file of an interrupted write of %s", candidate,
+                    stat.st_size / 1e6, path.name)
+    return removed
+
+
+def _process_start_time() -> float:
+    """When this process started (Unix time), from /proc; now, where /proc is unavailable."""
+    import time
+
+    try:
+        ticks = int(Path(f"/proc/{os.getpid()}/stat").read_text().rsplit(")", 1)[1].split()[19])
+        uptime = float(Path("/proc/uptime").read_text().split()[0])
+        return time.time() - uptime + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return time.time()
+
 
 @contextmanager
 def atomic_write(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; on success it replaces ``path``, on error it is removed.
+
+    Stale temporary files of earlier interrupted writes of ``path`` are removed first (logged).
 
     Raises:
         FileExistsError: ``path`` exists and ``overwrite`` is False (checked before anything is written).
@@ -23,12 +84,16 @@ def atomic_write(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
     if path.exists() and not overwrite:
         raise FileExistsError(f"{path} already exists; refusing to overwrite it")
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    remove_stale_temporaries(path)
+    tmp = temporary_path(path)
+    lock = os.open(tmp, os.O_WRONLY | os.O_CREAT, 0o644)
     try:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # held until the rename: marks the write as in progress
         yield tmp
         with open(tmp, "rb") as written:
             os.fsync(written.fileno())
         os.replace(tmp, path)
     finally:
+        os.close(lock)
         if tmp.exists():
             tmp.unlink()

@@ -19,12 +19,26 @@ def mcap_name(sequence_id: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", sequence_id).strip("._") + ".mcap"
 
 
+def check_not_inside(src: Path, dst: Path) -> None:
+    """Refuse a destination that is the source folder or lies inside it (its output would become input).
+
+    Raises:
+        RecordingError: naming both paths.
+    """
+    source, target = Path(src).resolve(), Path(dst).resolve()
+    if source.is_dir() and (target == source or source in target.parents):
+        where = "is the source folder itself" if target == source else "lies inside the source folder"
+        raise RecordingError(f"{dst}: destination {where} {src}; the converted copies would sit beside the "
+                             f"recordings they copy (same sequence ids); give a destination outside {src}")
+
+
 def convert(
     src: str | Path,
     dst: str | Path,
     *,
     overwrite: bool = False,
     audio_format: str | None = None,
+    drop_unread_lidar: bool = False,
     **reader_options: Any,
 ) -> list[Path]:
     """Write every recording found at ``src`` as MCAP.
@@ -40,14 +54,23 @@ def convert(
         overwrite: replace existing destination files.
         audio_format: sample format of the written audio ('S16LE', 'S32LE', 'F32LE'); default the
             source's own.
+        drop_unread_lidar: write recordings even when their source holds LiDAR topics the reader could
+            not place on a sensor (ROS 1 bags: ``meta["unread_lidar_topics"]``); otherwise refuse them.
         **reader_options: passed to :func:`open_recording` (e.g. ``sample_rate``, ``mapping``).
 
     Returns:
         The written files.
     """
     src, dst = Path(src), Path(dst)
+    check_not_inside(src, dst)
     sources = discover_recordings(src)
     recordings = [(path, open_recording(path, **reader_options)) for path in sources]
+    for path, recording in recordings:
+        unread = recording.meta.get("unread_lidar_topics") or []
+        if unread and not drop_unread_lidar:
+            raise RecordingError(f"{path}: LiDAR topic(s) {', '.join(unread)} are not mapped to a sensor and would "
+                                 f"be lost; map them (--mapping with mid360: <topic> / avia: <topic>) or pass "
+                                 f"--drop-unread-lidar to convert without them")
     if dst.suffix == ".mcap":
         if len(recordings) != 1:
             raise RecordingError(f"{src} holds {len(recordings)} recordings; give a folder, not {dst}, as destination")
@@ -63,11 +86,19 @@ def convert(
     for (path, _), target in zip(recordings, targets, strict=True):
         if target.resolve() == path.resolve():
             raise RecordingError(f"{target}: destination is the source itself")
+        if path.suffix == ".mcap" and target.resolve().parent == path.resolve().parent:
+            raise RecordingError(f"{target}: destination lies beside its source {path}; the copy would hold the "
+                                 f"same sequence id; give a destination folder elsewhere")
         if target.exists() and not overwrite:
             raise FileExistsError(f"{target} already exists; refusing to overwrite it (use --overwrite)")
     written = []
     for (path, recording), target in zip(recordings, targets, strict=True):
         log.info("converting %s (%s, %s) -> %s", path, recording.sequence_id,
                  recording.meta.get("source_format", "mcap"), target)
+        unread = recording.meta.pop("unread_lidar_topics", None) or []
+        if unread:  # the written recording holds what it holds; the metadata keeps what was left out
+            recording.meta["dropped_lidar_topics"] = unread
         written.append(write_mcap(recording, target, overwrite=overwrite, audio_format=audio_format))
+        if unread:
+            log.warning("%s: dropped LiDAR topic(s) %s (not mapped to a sensor)", target, ", ".join(unread))
     return written

@@ -8,7 +8,10 @@ from typing import Any
 import numpy as np
 
 from datamodules.formats import detect_layout, open_recording
-from datamodules.recording import count_gaps
+from datamodules.recording import AudioStream, check_finite_audio, count_gaps
+
+#: seconds of audio read at a time when scanning floating-point audio for NaN or infinite samples
+SCAN_BLOCK_SECONDS = 10.0
 
 
 def _rate(timestamps: np.ndarray) -> float:
@@ -24,6 +27,21 @@ def _format(path: Path, source: str | None) -> str:
     """The on-disk layout, with the original source of a converted MCAP in brackets."""
     layout = detect_layout(path)
     return f"{layout} ({source})" if source and source != layout else layout
+
+
+def scan_audio(audio: AudioStream, what: str) -> None:
+    """Read floating-point audio through, refusing NaN or infinite samples (integer formats cannot hold them).
+
+    Raises:
+        RecordingError: naming ``what`` and the time of the first bad sample.
+    """
+    if audio.sample_format not in (None, "F32LE"):
+        return
+    block = max(1, int(SCAN_BLOCK_SECONDS * audio.sample_rate))
+    for start in range(0, audio.num_samples, block):
+        samples = audio.read(start, min(start + block, audio.num_samples))
+        check_finite_audio(samples, audio.t0 + start / audio.sample_rate, audio.sample_rate, f"{what} audio",
+                           audio.t0)
 
 
 def describe(path: Path, sample_frames: int = 5, **options: Any) -> dict[str, Any]:
@@ -42,6 +60,8 @@ def describe(path: Path, sample_frames: int = 5, **options: Any) -> dict[str, An
         "span_s": round(end - start, 2),
     }
     audio = recording.audio
+    if audio is not None:
+        scan_audio(audio, str(path))
     row["audio"] = (f"{audio.num_channels}ch {audio.sample_rate:g}Hz {audio.duration:.1f}s"
                     if audio is not None else "-")
     audio_gaps = recording.meta.get("audio_gaps") or recording.meta.get("audio_missing_chunks")

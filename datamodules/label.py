@@ -9,10 +9,10 @@ to ``aaute convert``.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,6 +20,7 @@ from typing import Any
 from datamodules.formats import discover_all, open_recording
 from datamodules.recording import Recording, RecordingError, Track
 from datamodules.teacher import TeacherConfig, TeacherScore, run_teacher, score_recording
+from datamodules.workers import interruptible_pool
 
 log = logging.getLogger(__name__)
 
@@ -122,12 +123,19 @@ def label_paths(paths: Sequence[str | Path], config: TeacherConfig | None = None
     outcomes: dict[Path, LabelOutcome] = {}
     if workers > 1 and len(recordings) > 1:
         bar = tqdm(total=len(recordings), desc="label", unit="rec", disable=not progress)
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = {pool.submit(label_one, p, config, **options): p for p in recordings}
-            for future in as_completed(futures):
-                outcomes[futures[future]] = future.result()
-                bar.update()
-        bar.close()
+        try:
+            # leaving the block terminates the workers: Ctrl-C starts no further recording
+            with interruptible_pool(min(workers, len(recordings))) as pool:
+                for outcome in pool.imap_unordered(functools.partial(label_one, config=config, **options),
+                                                   recordings):
+                    outcomes[outcome.path] = outcome
+                    bar.update()
+        except KeyboardInterrupt:
+            log.warning("interrupted: %d of %d recordings finished; the others are unchanged (rerun "
+                        "with --skip-existing to label only those)", len(outcomes), len(recordings))
+            raise
+        finally:
+            bar.close()
     else:
         overall = tqdm(total=len(recordings), desc="label", unit="rec", disable=not progress or len(recordings) < 2)
         for path in recordings:

@@ -35,6 +35,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset
 
 from datamodules.cache import FeatureCache, array_fingerprint, path_fingerprint
+from datamodules.errors import ConfigError
 from datamodules.features import (
     DARK_MODES,
     PhaseWindows,
@@ -208,7 +209,7 @@ class MMAUDDataModule(L.LightningDataModule):
         self.inputs = dict(inputs or {"audio_mel": "aaute"})
         unknown = set(self.inputs) - set(INPUT_KINDS)
         if unknown:
-            raise ValueError(f"unknown input(s) {sorted(unknown)}; known: {INPUT_KINDS}")
+            raise ConfigError(f"unknown input(s) {sorted(unknown)}; known: {INPUT_KINDS}")
         self.audio_recipe = mel_recipe(self.inputs["audio_mel"]) if "audio_mel" in self.inputs else None
         self.phase_recipe = phase_recipe(self.inputs["audio_phase"]) if "audio_phase" in self.inputs else None
         self.image_recipe = image_recipe(self.inputs["image"]) if "image" in self.inputs else None
@@ -218,11 +219,11 @@ class MMAUDDataModule(L.LightningDataModule):
         self.test_lights = list(test_lights or ["ideal", "dark"])
         for value in (light, *self.test_lights):
             if value not in LIGHTS:
-                raise ValueError(f"light must be one of {LIGHTS}, not {value!r}")
+                raise ConfigError(f"light must be one of {LIGHTS}, not {value!r}")
         if dark_mode not in DARK_MODES:
-            raise ValueError(f"dark_mode must be one of {DARK_MODES}, not {dark_mode!r}")
+            raise ConfigError(f"dark_mode must be one of {DARK_MODES}, not {dark_mode!r}")
         if targets not in TARGET_MODES:
-            raise ValueError(f"targets must be one of {TARGET_MODES}, not {targets!r}")
+            raise ConfigError(f"targets must be one of {TARGET_MODES}, not {targets!r}")
         self.split_config = SplitConfig.from_dict(split, self._window_span())
         self.cache = FeatureCache(cache_dir)
         self.sequences: dict[str, list[SequenceSamples]] = {}
@@ -319,7 +320,10 @@ class MMAUDDataModule(L.LightningDataModule):
         recordings = [(path, open_recording(path, **options)) for path in paths]
         ids = [rec.sequence_id for _, rec in recordings]
         if len(set(ids)) != len(ids):
-            raise RecordingError(f"sequence ids are not unique under {self.hparams.root}")
+            clashes = {i: [str(p) for p, rec in recordings if rec.sequence_id == i] for i in ids if ids.count(i) > 1}
+            listing = "; ".join(f"{i!r} in {', '.join(files)}" for i, files in clashes.items())
+            raise RecordingError(f"{self.hparams.root}: sequence ids are not unique: {listing}; expected one "
+                                 f"recording per id (remove the copies)")
         self.drone_counts = dict(Counter(rec.drone or "unknown" for _, rec in recordings))
         by_sequence = self.split_config.protocol == "by_sequence"
         assignment = self._assign_splits(recordings) if by_sequence else ["all"] * len(recordings)

@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from datamodules.errors import AauteError
+
 DRONE_TYPES = ("avata", "m300", "mavic2", "mavic3", "phantom4")
 LIDAR_SENSORS = ("mid360", "avia")
 
@@ -28,7 +30,7 @@ LIDAR_SENSORS = ("mid360", "avia")
 ORIGIN_BACKGROUND, ORIGIN_DRONE, ORIGIN_FALSE = 0, 1, 2
 
 
-class RecordingError(ValueError):
+class RecordingError(AauteError, ValueError):
     """A recording (file or folder) does not hold what was expected."""
 
 
@@ -91,6 +93,118 @@ def count_gaps(timestamps: np.ndarray, factor: float = GAP_FACTOR) -> int:
         return 0
     steps = np.diff(timestamps)
     return int(np.count_nonzero(steps > factor * np.median(steps)))
+
+
+#: positions farther than this from the rig (median over a track) are implausible: the Leica MS60's prism lock
+#: range is about 1000 m and the Livox Avia sees at most 450 m (reference/mmaud_and_teacher.md); MMAUD flights
+#: stay within tens of metres. Override with the environment variable ``AAUTE_PLAUSIBLE_RANGE_M``.
+PLAUSIBLE_RANGE_M = 1000.0
+#: relative disagreement of an audio sample rate with its message stamps that is an error (1 %)
+RATE_TOLERANCE = 0.01
+
+
+def plausible_range_m() -> float:
+    """The largest plausible median distance (m) of a track from the rig (:data:`PLAUSIBLE_RANGE_M`)."""
+    import os
+
+    value = os.environ.get("AAUTE_PLAUSIBLE_RANGE_M")
+    if value is None:
+        return PLAUSIBLE_RANGE_M
+    try:
+        limit = float(value)
+    except ValueError:
+        raise RecordingError(f"AAUTE_PLAUSIBLE_RANGE_M={value!r}: expected a distance in metres") from None
+    if not limit > 0:
+        raise RecordingError(f"AAUTE_PLAUSIBLE_RANGE_M={value!r}: expected a positive distance in metres")
+    return limit
+
+
+def check_track_values(timestamps: np.ndarray, xyz: np.ndarray, valid: np.ndarray | None, what: str) -> None:
+    """Refuse a track whose labelled positions are NaN/infinite or implausibly far from the rig.
+
+    ``what`` names the file and topic. Points marked invalid may hold anything (NaN by convention).
+
+    Raises:
+        RecordingError: the first non-finite labelled position (index and time), or a median distance
+            beyond :func:`plausible_range_m` (with the likely unit error: millimetres or centimetres).
+    """
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    keep = np.ones(len(xyz), dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+    bad = np.flatnonzero(keep & ~np.isfinite(xyz).all(axis=1))
+    if bad.size:
+        i = int(bad[0])
+        raise RecordingError(
+            f"{what}: {bad.size} labelled position(s) are NaN or infinite, first at index {i} "
+            f"(t = {float(timestamps[i]):.3f} s: {xyz[i].tolist()}); expected finite x, y, z in metres "
+            f"(mark missing labels invalid instead)"
+        )
+    if not keep.any():
+        return
+    median = float(np.median(np.linalg.norm(xyz[keep], axis=1)))
+    limit = plausible_range_m()
+    if median > limit:
+        units = next((f"; in {name}? /{factor:g} gives {median / factor:.1f} m"
+                      for name, factor in (("millimetres", 1000.0), ("centimetres", 100.0))
+                      if median / factor <= limit), "")
+        raise RecordingError(
+            f"{what}: positions lie {median:.0f} m from the rig (median), expected metres within {limit:g} m"
+            f"{units} (set AAUTE_PLAUSIBLE_RANGE_M to accept farther tracks)"
+        )
+
+
+def check_audio_rate(values: np.ndarray, steps_s: np.ndarray, rate: float, channels: int, what: str) -> None:
+    """Check a sample rate and channel count against the samples and stamps of audio messages.
+
+    ``values[i]`` is the number of samples (all channels together) message ``i`` holds and
+    ``steps_s[i]`` the time from its stamp to the next message's. The median samples per second and
+    channel must agree with ``rate`` within :data:`RATE_TOLERANCE`; when they do not, but another
+    whole channel count fits the rate exactly, the channel count is named as the cause.
+
+    Raises:
+        RecordingError: naming the measured rate (or the channel count the data fits).
+    """
+    values = np.asarray(values, dtype=np.float64)
+    steps_s = np.asarray(steps_s, dtype=np.float64)
+    usable = (values > 0) & (steps_s > 0)
+    if not usable.any():
+        return
+    per_second = float(np.median(values[usable] / steps_s[usable]))  # all channels together
+    measured = per_second / channels
+    if abs(measured / rate - 1.0) <= RATE_TOLERANCE:
+        return
+    fitting = per_second / rate
+    whole = int(round(fitting))
+    if whole >= 1 and whole != channels and abs(fitting / whole - 1.0) <= RATE_TOLERANCE:
+        raise RecordingError(
+            f"{what}: the messages hold {per_second:.0f} samples per second of stamps: {whole} channel(s) at "
+            f"{rate:g} Hz, not the {channels} channel(s) stated (or {channels} at {measured:.0f} Hz); "
+            f"give the right channel count"
+        )
+    raise RecordingError(
+        f"{what}: the message stamps advance at about {measured:.0f} samples/s but the sample rate is "
+        f"{rate:g} Hz (per channel, tolerance {RATE_TOLERANCE:.0%}); give the right sample rate"
+    )
+
+
+def check_finite_audio(block: np.ndarray, t0: float, sample_rate: float, what: str,
+                       audio_t0: float | None = None) -> None:
+    """Refuse audio samples that are NaN or infinite, naming the time of the first (``block`` starts at ``t0``;
+    ``audio_t0``, the time of the audio's first sample, adds the time into the recording).
+
+    Raises:
+        RecordingError: with the channel, sample time and count of the bad samples.
+    """
+    finite = np.isfinite(block)
+    if finite.all():
+        return
+    bad = np.argwhere(~finite)
+    channel, sample = bad[np.argmin(bad[:, 1])]
+    t = t0 + sample / sample_rate
+    into = f", {t - audio_t0:.3f} s into the audio" if audio_t0 is not None else ""
+    raise RecordingError(
+        f"{what}: {len(bad)} NaN or infinite audio sample(s), first at t = {t:.3f} s{into} "
+        f"(channel {int(channel)}); expected finite samples"
+    )
 
 
 # --------------------------------------------------------------------------------------------- audio

@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from datamodules.errors import AauteError
+
 PROTOCOLS = ("by_sequence", "time_blocks", "random_windows")
 SPLITS = ("train", "val", "test")
 #: per-window split codes; the code is also the purge priority (a higher split keeps its windows)
@@ -39,7 +41,7 @@ _COMMON_KEYS = {"protocol", "seed", "val", "test", "train"}
 _BLOCK_KEYS = {"blocks", "block_seconds", "purge_seconds"}
 
 
-class SplitError(ValueError):
+class SplitError(AauteError, ValueError):
     """A split setting is invalid, or the split leaves a split a stage needs empty."""
 
 

@@ -9,11 +9,20 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from datamodules.errors import AauteError, ConfigError
+
 log = logging.getLogger("aaute")
+
+#: errors printed as one line and exit code 2 (the traceback only with ``--debug`` or ``AAUTE_DEBUG=1``): the
+#: project's own error classes (bad input, bad settings) and a file that is missing or in the way.
+#: Anything else is a programming error and shows its traceback.
+USER_ERRORS = (AauteError, FileNotFoundError, FileExistsError, IsADirectoryError, NotADirectoryError,
+               PermissionError)
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -26,7 +35,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         if given is not None:
             lo, hi = given
             if not 0 <= lo <= hi:
-                raise ValueError(f"{flag} needs 0 <= LOW <= HIGH, got {lo:g} {hi:g}")
+                raise ConfigError(f"{flag} needs 0 <= LOW <= HIGH, got {lo:g} {hi:g}")
             ranges[field] = (lo, hi)
     ambient = AmbientConfig(hvac=not args.no_hvac, **ranges)
     config = SimulationConfig(
@@ -66,16 +75,26 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
     options = _reader_options(args)
     paths = discover_all(args.paths)
-    rows = [describe(path, **options) for path in paths]
+    rows, failed = [], []
+    for path in paths:  # a bad recording is reported after the table; the others are still described
+        try:
+            rows.append(describe(path, **options))
+        except AauteError as error:
+            failed.append((path, error))
     sys.stdout.write(format_table(rows) + "\n")
-    return 0
+    for path, error in failed:
+        message = " ".join(str(error).split())
+        sys.stdout.write(f"FAILED {path}: {message}\n" if str(path) not in message else f"FAILED {message}\n")
+    if failed:
+        log.error("%d of %d recording(s) could not be read", len(failed), len(paths))
+    return 1 if failed else 0
 
 
 def _cmd_convert(args: argparse.Namespace) -> int:
     from datamodules.convert import convert
 
     written = convert(args.src, args.dst, overwrite=args.overwrite, audio_format=args.audio_format,
-                      **_reader_options(args))
+                      drop_unread_lidar=args.drop_unread_lidar, **_reader_options(args))
     log.info("%d MCAP recording(s) written to %s", len(written), args.dst)
     return 0
 
@@ -90,12 +109,12 @@ def _cmd_label(args: argparse.Namespace) -> int:
     for item in args.param:
         name, sep, value = item.partition("=")
         if not sep:
-            raise ValueError(f"--param expects NAME=VALUE, got {item!r}")
+            raise ConfigError(f"--param expects NAME=VALUE, got {item!r}")
         overrides[name.strip()] = value.strip()
     config = TeacherConfig.from_overrides(overrides)
     paths = [*args.paths, *args.data]
     if not paths:
-        raise ValueError("aaute label: give recordings or folders to label (PATH... or --data ROOT)")
+        raise ConfigError("aaute label: give recordings or folders to label (PATH... or --data ROOT)")
     outcomes = label_paths(paths, config, workers=args.workers, write=not args.no_write,
                            evaluate=args.evaluate, skip_existing=args.skip_existing, max_range_m=args.max_range,
                            reader_options=_reader_options(args))
@@ -117,9 +136,23 @@ def _cmd_label(args: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
+def check_output(src: Path, dst: Path, overwrite: bool) -> None:
+    """The one overwrite policy of commands that write a file: never over an input, over others only if asked.
+
+    Raises:
+        ConfigError: ``dst`` is the input ``src``.
+        FileExistsError: ``dst`` exists and ``overwrite`` is False.
+    """
+    if dst.exists() and src.exists() and dst.resolve() == src.resolve():
+        raise ConfigError(f"{dst}: the output is the input {src}; write the result to another file")
+    if dst.exists() and not overwrite:
+        raise FileExistsError(f"{dst} already exists; refusing to overwrite it (use --overwrite)")
+
+
 def _cmd_smooth(args: argparse.Namespace) -> int:
     from zoo.smoothing import smooth_track_file
 
+    check_output(args.src, args.dst, args.overwrite)
     options = {"preset": args.preset, "backend": args.backend, "fit": args.fit}
     if args.horizon is not None:
         options["horizon"] = args.horizon
@@ -162,6 +195,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     conv.add_argument("src", type=Path, help="a recording, or a folder / list file holding several")
     conv.add_argument("dst", type=Path, help="an .mcap file (one recording) or a folder (one MCAP per sequence)")
     conv.add_argument("--overwrite", action="store_true", help="replace existing MCAP files")
+    conv.add_argument("--drop-unread-lidar", action="store_true",
+                      help="convert bags even if some LiDAR topics cannot be placed on a sensor (they are dropped)")
     conv.add_argument("--audio-format", choices=["S16LE", "S32LE", "F32LE"],
                       help="sample format of the written audio (default: the source's own)")
     _add_reader_options(conv)
@@ -190,6 +225,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     smooth.add_argument("--backend", default="auto", help="auto | exact | statespace | local")
     smooth.add_argument("--fit", action="store_true", help="fit the hyperparameters by marginal likelihood first")
     smooth.add_argument("--horizon", type=float, help="flag query times farther than this (s) from any data")
+    smooth.add_argument("--overwrite", action="store_true", help="replace an existing DST (never SRC itself)")
     smooth.set_defaults(func=_cmd_smooth)
 
 
@@ -197,6 +233,8 @@ def build_parser(extra: Callable[[argparse._SubParsersAction], None] | None = No
     """The ``aaute`` parser: the zoo's subcommands plus those ``extra`` adds (the benchmarks' own)."""
     parser = argparse.ArgumentParser(prog="aaute", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the traceback of errors (also AAUTE_DEBUG=1); accepted anywhere on the line")
     sub = parser.add_subparsers(dest="command", required=True)
     add_commands(sub)
     if extra is not None:
@@ -226,7 +264,11 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
     class _CLI(LightningCLI):
         def instantiate_classes(self) -> None:
             if instantiate:
-                super().instantiate_classes()
+                try:
+                    super().instantiate_classes()
+                except ValueError as error:  # jsonargparse keeps only the text of the class's own error
+                    _raise_project_error(self.config, error)
+                    raise
 
         def _parse_ckpt_path(self) -> None:
             # Lightning merges a checkpoint's hyperparameters over the command line; where this run writes
@@ -250,28 +292,81 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
     )
 
 
+def _raise_project_error(config, error: ValueError) -> None:
+    """Build the model and data classes of ``config`` again, so that their own project error surfaces.
+
+    jsonargparse reports a failing ``__init__`` as a ValueError holding the text of every attempt; the
+    project error (an unknown net, an alpha outside [0, 1], ...) is raised here by type instead.
+    """
+    import importlib
+
+    subcommand = config.get("subcommand")
+    section = config[subcommand] if subcommand else config
+    for key in ("model", "data"):
+        entry = section.get(key)
+        if not entry or not getattr(entry, "class_path", None):
+            continue
+        module_name, _, class_name = entry.class_path.rpartition(".")
+        cls = getattr(importlib.import_module(module_name), class_name)
+        init_args = entry.init_args.as_dict() if entry.get("init_args") is not None else {}
+        try:
+            cls(**init_args)
+        except AauteError as project_error:
+            raise project_error from error
+
+
 def lightning_main(argv: Sequence[str] | None) -> None:
     """``aaute fit|validate|test|predict``."""
     lightning_cli(argv)
 
 
-def main(argv: Sequence[str] | None = None,
-         extra: Callable[[argparse._SubParsersAction], None] | None = None) -> int:
-    """Run one ``aaute`` subcommand; ``extra`` adds subcommands (see :mod:`benchmarks.cli`)."""
-    given = argv
-    argv = list(sys.argv[1:] if argv is None else argv)
+def debug_requested(argv: Sequence[str]) -> bool:
+    """Whether tracebacks were asked for: ``--debug`` anywhere on the command line or ``AAUTE_DEBUG=1``."""
+    return "--debug" in argv or os.environ.get("AAUTE_DEBUG", "").strip().lower() in ("1", "true", "yes")
+
+
+def report_error(error: BaseException) -> None:
+    """Print a project error as one line on stderr (its message names the file and what was expected)."""
+    message = " ".join(str(error).split()) or type(error).__name__
+    sys.stderr.write(f"aaute: error: {message} (--debug for the traceback)\n")
+
+
+def _run(argv: list[str], extra: Callable[[argparse._SubParsersAction], None] | None, from_sys_argv: bool) -> int:
     if argv and argv[0] in LIGHTNING_COMMANDS:
-        lightning_main(given)
+        lightning_main(None if from_sys_argv else argv)
         return 0
     args = build_parser(extra).parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
                         format="%(levelname)s %(name)s: %(message)s")
     func: Callable[[argparse.Namespace], int] = args.func
+    return func(args)
+
+
+def main(argv: Sequence[str] | None = None,
+         extra: Callable[[argparse._SubParsersAction], None] | None = None) -> int:
+    """Run one ``aaute`` subcommand; ``extra`` adds subcommands (see :mod:`benchmarks.cli`).
+
+    Project errors (:data:`USER_ERRORS`) print one line and return 2; Ctrl-C prints one line and returns
+    130. With ``--debug`` (anywhere on the command line) or ``AAUTE_DEBUG=1`` both raise with their traceback.
+    """
+    from_sys_argv = argv is None
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = debug_requested(argv)
+    argv = [word for word in argv if word != "--debug"]
+    if from_sys_argv:
+        sys.argv[1:] = argv  # LightningCLI reads sys.argv itself when it is given no list
     try:
-        return func(args)
-    except (ValueError, FileExistsError, FileNotFoundError) as error:
-        log.error("%s", error)
+        return _run(argv, extra, from_sys_argv)
+    except USER_ERRORS as error:
+        if debug:
+            raise
+        report_error(error)
         return 2
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        sys.stderr.write("aaute: interrupted; files already written are complete, nothing half-written is left\n")
+        return 130
 
 
 if __name__ == "__main__":

@@ -7,6 +7,8 @@ from typing import Any
 
 from torch import nn
 
+from datamodules.errors import ConfigError
+
 _MODELS: dict[str, type[nn.Module]] = {}
 
 
@@ -33,12 +35,20 @@ def model_class(name: str) -> type[nn.Module]:
     try:
         return _MODELS[name]
     except KeyError:
-        raise ValueError(f"unknown model {name!r}; known models: {', '.join(list_models())}") from None
+        raise ConfigError(f"unknown model {name!r}; known models: {', '.join(list_models())}") from None
 
 
 def get_model(name: str, **kwargs: Any) -> nn.Module:
-    """Build the network registered as ``name`` with ``kwargs``."""
-    return model_class(name)(**kwargs)
+    """Build the network registered as ``name`` with ``kwargs`` (an argument it does not take: ConfigError)."""
+    import inspect
+
+    cls = model_class(name)
+    try:
+        inspect.signature(cls).bind(**kwargs)
+    except TypeError as error:
+        known = ", ".join(p for p in inspect.signature(cls).parameters if p not in ("args", "kwargs"))
+        raise ConfigError(f"model {name!r}: {error} (net_kwargs); its arguments: {known}") from None
+    return cls(**kwargs)
 
 
 def list_models() -> list[str]:

@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from datamodules.atomic import atomic_write
+from datamodules.errors import ConfigError, NonFiniteLossError
 from zoo.metrics import TrajectoryError
 from zoo.registry import get_model
 
@@ -73,9 +74,9 @@ class TrajectoryTask(L.LightningModule):
     ):
         super().__init__()
         if not 0.0 <= alpha <= 1.0:
-            raise ValueError(f"alpha must lie in [0, 1], got {alpha}")
+            raise ConfigError(f"alpha must lie in [0, 1], got {alpha}")
         if loss not in LOSSES:
-            raise ValueError(f"loss must be one of {LOSSES}, got {loss!r}")
+            raise ConfigError(f"loss must be one of {LOSSES}, got {loss!r}")
         self.save_hyperparameters()
         self.net: nn.Module = get_model(net, **(net_kwargs or {}))
         self.metrics = nn.ModuleDict()
@@ -108,12 +109,17 @@ class TrajectoryTask(L.LightningModule):
         wanted = dict(self.net.inputs)
         missing = sorted(set(wanted) - set(batch))
         if missing:
-            raise ValueError(
+            raise ConfigError(
                 f"model {self.hparams.net!r} needs inputs {wanted}; the batch lacks {missing}: "
                 f"set data inputs to {wanted}"
             )
         if not self._checked_inputs:
-            self.net.check_inputs(batch)
+            try:
+                self.net.check_inputs(batch)
+            except ConfigError as error:
+                every = torch.ones(len(batch["gt"]), dtype=torch.bool) if "gt" in batch else None
+                source = f" (batch from {self._where(batch, every)})" if every is not None else ""
+                raise ConfigError(f"{error}{source}") from None
             self._checked_inputs = True
         context = [name for name in getattr(self.net, "context_keys", ()) if name in batch]
         return {name: batch[name] for name in (*wanted, *context)}
@@ -171,6 +177,48 @@ class TrajectoryTask(L.LightningModule):
                 self.log(f"{stage}_{name}{ref}{suffix}", value.float(), add_dataloader_idx=False)
             metric.reset()
 
+    def _where(self, batch: dict[str, torch.Tensor], rows: torch.Tensor) -> str:
+        """The recordings and times of batch ``rows`` (a boolean mask), for error messages."""
+        names = self._sequence_names() if self._trainer is not None else []
+        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
+        paths = list(getattr(datamodule, "sequence_paths", []))
+        found = torch.nonzero(rows).flatten().tolist()
+        times: dict[str, list[str]] = {}
+        for i in found:
+            index = int(batch["sequence"][i]) if "sequence" in batch else -1
+            name = names[index] if 0 <= index < len(names) else f"sequence {index}"
+            if 0 <= index < len(paths):
+                name += f" ({paths[index]})"
+            times.setdefault(name, [])
+            if "time" in batch and len(times[name]) < 3:
+                times[name].append(f"{float(batch['time'][i]):.3f}")
+        return "; ".join(f"{name} at t = {', '.join(t)}{' ...' if len(t) == 3 else ''} s" if t else name
+                         for name, t in times.items())
+
+    def _check_finite(self, total: torch.Tensor, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor],
+                      stage: str) -> None:
+        """Raise :class:`NonFiniteLossError` naming the windows behind a NaN or infinite loss."""
+        if bool(torch.isfinite(total)):
+            return
+        total = total.detach()
+        for name in ("gt", "pseudo"):
+            rows = batch[f"{name}_valid"] & ~torch.isfinite(batch[name]).all(dim=1)
+            if rows.any():
+                raise NonFiniteLossError(f"{stage} loss is {float(total)}: labelled {name} targets are NaN or "
+                                         f"infinite at {self._where(batch, rows)}; expected finite positions")
+        for name in self.net.inputs:
+            values = batch[name]
+            if values.is_floating_point():
+                rows = ~torch.isfinite(values.reshape(len(values), -1)).all(dim=1)
+                if rows.any():
+                    raise NonFiniteLossError(f"{stage} loss is {float(total)}: input {name!r} is NaN or infinite "
+                                             f"at {self._where(batch, rows)}; expected finite features")
+        rows = ~torch.isfinite(outputs["position"].detach()).all(dim=1)
+        cause = f"the network's positions are NaN or infinite at {self._where(batch, rows)}" if rows.any() \
+            else "the auxiliary losses are not finite"
+        raise NonFiniteLossError(f"{stage} loss is {float(total)} with finite inputs and targets: {cause} "
+                                 f"(diverged: lower the learning rate, now {self.hparams.lr:g})")
+
     # ------------------------------------------------------------------------------ steps
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -184,6 +232,7 @@ class TrajectoryTask(L.LightningModule):
             if self.skipped_batches in (1, 10, 100, 1000):
                 log.warning("skipped %d training batch(es) with no valid target", self.skipped_batches)
             return None
+        self._check_finite(total, outputs, batch, "training")
         batch_size = len(batch["gt"])
         self.log("train_loss", total, prog_bar=True, batch_size=batch_size)
         for name, value in terms.items():
@@ -202,6 +251,7 @@ class TrajectoryTask(L.LightningModule):
         outputs = self._evaluate(batch, "val", dataloader_idx)
         total, _ = self.objective(outputs, batch)
         if total is not None:
+            self._check_finite(total, outputs, batch, "validation")
             self.log("val_loss", total, batch_size=len(batch["gt"]), add_dataloader_idx=False)
 
     def on_validation_epoch_end(self) -> None:

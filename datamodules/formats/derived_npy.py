@@ -46,6 +46,7 @@ from datamodules.recording import (
     Recording,
     RecordingError,
     Track,
+    check_track_values,
     count_gaps,
     json_safe,
     ns_to_seconds,
@@ -376,6 +377,7 @@ def _read_track(folder: Path, indices: np.ndarray, times: np.ndarray, what: str)
                     folder, absent, indices.size, what)
     if bad:
         log.warning("%s: %d %s file(s) hold non-finite values", folder, bad, what)
+    check_track_values(times, xyz, valid, f"{folder} ({what})")
     return Track(times, xyz, valid), outside
 
 

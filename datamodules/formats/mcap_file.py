@@ -37,7 +37,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.reader import SeekingReader, make_reader
 from mcap.records import Chunk, Message, MessageIndex
-from mcap.stream_reader import breakup_chunk
+from mcap.stream_reader import CRCValidationError, breakup_chunk
 from mcap.writer import Writer as RawWriter
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer
@@ -61,7 +61,10 @@ from datamodules.recording import (
     Recording,
     RecordingError,
     Track,
+    check_audio_rate,
+    check_finite_audio,
     check_monotonic,
+    check_track_values,
     ns_to_seconds,
     seconds_to_ns,
     to_json,
@@ -76,6 +79,7 @@ TOPIC_PSEUDO_LABEL = "/pseudo_label"
 LIDAR_TOPICS = {"mid360": "/livox/mid360", "avia": "/livox/avia"}
 QUALITY_SUFFIX = "/quality"
 AUDIO_CHUNK_SECONDS = 0.1  #: MMAUD-style 0.1 s audio messages aligned to the 10 Hz labels
+RATE_CHECK_MESSAGES = 5  #: audio messages, spread over the recording, decoded to check the rate against the stamps
 
 
 # ============================================================================================ writing
@@ -188,6 +192,7 @@ def _write_audio(writer: Writer, schemas: dict, audio: AudioStream, sample_forma
         samples = audio.read(start, min(start + block, audio.num_samples))
         if samples.shape[0] != audio.num_channels:
             raise RecordingError(f"audio has {samples.shape[0]} channels but {audio.num_channels} mic positions")
+        check_finite_audio(samples, audio.t0 + start / rate, rate, "audio to write", audio.t0)
         for offset in range(0, samples.shape[1], chunk):
             first = start + offset
             ns = int(seconds_to_ns(audio.t0 + first / rate))
@@ -254,7 +259,7 @@ def replace_track(path: str | Path, topic: str, track: Track | None) -> Path:
             writer.add_metadata(name, meta)
         if track is not None:
             _copy_messages(make_reader(encoded), writer, set())
-        _copy_messages(make_reader(source), writer, drop)
+        _copy_messages(make_reader(source, validate_crcs=True), writer, drop)
         writer.finish()
     return path
 
@@ -345,10 +350,13 @@ class McapIndex:
         self._stream.seek(chunk_index.chunk_start_offset + 1 + 8)
         try:
             chunk = Chunk.read(ReadDataStream(self._stream))
-            records = breakup_chunk(chunk)
-        except Exception as error:  # zstd/lz4 errors have no common base class
-            raise RecordingError(f"{self.path}: corrupt chunk at byte {chunk_index.chunk_start_offset}: {error}") \
+            records = breakup_chunk(chunk, validate_crc=True)  # chunks written without a CRC (0) pass unchecked
+        except CRCValidationError as error:
+            raise RecordingError(f"{self.path}: corrupt chunk ({self._describe_chunk(chunk_id)}): its CRC does not "
+                                 f"match its data (expected {error.expected:#010x}, found {error.actual:#010x})") \
                 from error
+        except Exception as error:  # zstd/lz4 errors have no common base class
+            raise RecordingError(f"{self.path}: corrupt chunk ({self._describe_chunk(chunk_id)}): {error}") from error
         messages: dict[tuple[int, int], list[Message]] = {}
         for record in records:
             if isinstance(record, Message):
@@ -357,6 +365,14 @@ class McapIndex:
         if len(self._cache) > self._cache_chunks:
             self._cache.popitem(last=False)
         return messages
+
+    def _describe_chunk(self, chunk_id: int) -> str:
+        """Where a chunk lies: its byte offset, time range and topics (for error messages)."""
+        chunk_index = self.summary.chunk_indexes[chunk_id]
+        start, end = (float(ns_to_seconds(ns)) for ns in (chunk_index.message_start_time,
+                                                           chunk_index.message_end_time))
+        topics = sorted(self.summary.channels[c].topic for c in chunk_index.message_index_offsets)
+        return f"byte {chunk_index.chunk_start_offset}, t = {start:.3f} to {end:.3f} s, topic(s) {', '.join(topics)}"
 
     def _decode(self, channel_id: int, data: bytes) -> Any:
         decoder = self._decoders.get(channel_id)
@@ -418,6 +434,19 @@ class McapAudio(AudioStream):
         check_monotonic(ns_to_seconds(stamps), f"{path} {TOPIC_AUDIO}")
         # sample index of each message's first sample, from its stamp
         self._first = np.rint((ns_to_seconds(stamps) - self.t0) * self.sample_rate).astype(np.int64)
+        self._stamps = stamps
+        self._check_rate()
+
+    def _check_rate(self) -> None:
+        """Decode a few messages spread over the recording and check rate and channels against the stamps."""
+        stamps = self._stamps
+        if stamps.size < 2:
+            return
+        picks = np.unique(np.linspace(0, stamps.size - 2, min(RATE_CHECK_MESSAGES, stamps.size - 1)).astype(int))
+        values = np.array([self._raw(int(i)).size for i in picks])
+        steps = (stamps[picks + 1] - stamps[picks]) / 1e9
+        check_audio_rate(values, steps, self.sample_rate, self.num_channels,
+                         f"{self._index.path} {TOPIC_AUDIO} (metadata 'audio' and {TOPIC_AUDIO_INFO})")
 
     def read(self, start: int, stop: int) -> np.ndarray:
         self._check_range(start, stop)
@@ -442,15 +471,22 @@ class McapAudio(AudioStream):
             raise RecordingError(f"{self._index.path}: audio ends at sample {filled}, {stop} requested")
         return out
 
-    def _decode(self, position: int) -> np.ndarray:
+    def _raw(self, position: int) -> np.ndarray:
         msg = self._index.message(TOPIC_AUDIO, position)
-        raw = np.frombuffer(bytes(msg.audio.data), dtype=self._dtype)
+        return np.frombuffer(bytes(msg.audio.data), dtype=self._dtype)
+
+    def _decode(self, position: int) -> np.ndarray:
+        raw = self._raw(position)
         if raw.size % self.num_channels:
             raise RecordingError(
                 f"{self._index.path}: audio message {position} holds {raw.size} samples, "
                 f"not a multiple of {self.num_channels} channels"
             )
-        return (raw.reshape(-1, self.num_channels).T / self._scale).astype(np.float32)
+        block = (raw.reshape(-1, self.num_channels).T / self._scale).astype(np.float32)
+        if self._dtype.kind == "f":
+            check_finite_audio(block, float(ns_to_seconds(self._stamps[position])), self.sample_rate,
+                               f"{self._index.path} {TOPIC_AUDIO}[{position}]", self.t0)
+        return block
 
 
 class McapPointClouds(PointCloudStream):
@@ -508,6 +544,7 @@ def _read_track(index: McapIndex, topic: str) -> Track | None:
         values = np.array([list(m.values) for m in quality], dtype=np.float64).reshape(len(quality), len(names))
         track = Track(ns_to_seconds(all_ns), full, valid, {n: values[:, k] for k, n in enumerate(names)})
     check_monotonic(track.timestamps, f"{index.path} {topic}")
+    check_track_values(track.timestamps, track.xyz, track.valid, f"{index.path} {topic}")
     return track
 
 

@@ -59,6 +59,7 @@ import numpy as np
 from datamodules.formats.ros_messages import SAMPLE_FORMATS, pointcloud_to_arrays, stamp_ns
 from datamodules.recording import (
     DRONE_TYPES,
+    RATE_TOLERANCE,
     AudioStream,
     EncodedImage,
     ImageStream,
@@ -67,7 +68,9 @@ from datamodules.recording import (
     Recording,
     RecordingError,
     Track,
+    check_audio_rate,
     check_monotonic,
+    check_track_values,
     count_gaps,
     json_safe,
     ns_to_seconds,
@@ -95,7 +98,6 @@ LIDAR_HINTS = {"avia": ("avia",), "mid360": ("mid360", "mid_360", "360")}
 #: Livox driver package -> the sensor it drives (the Mid-360 needs SDK 2 and livox_ros_driver2)
 LIVOX_DRIVER_SENSOR = {"livox_ros_driver2/msg/CustomMsg": "mid360", "livox_ros_driver/msg/CustomMsg": "avia"}
 GROUND_TRUTH_HINTS = ("leica", "ground_truth", "groundtruth", "gt")
-RATE_TOLERANCE = 0.01  #: relative disagreement of sample rate and message stamps that is an error
 RATE_MIN_MESSAGES = 10  #: audio messages needed to check the sample rate against the stamps
 #: a lasting jump of the stamps against the sample clock longer than this many message durations is a gap
 GAP_MESSAGES = 0.6
@@ -642,8 +644,11 @@ def read_rosbag1(
             raise RecordingError(f"{owner[topic].path}: topic {topic} ({key}) holds no messages")
 
     index = _index_bags(bags, owner, topics)
+    unread = sorted(t for t, msgtype in types.items() if msgtype in LIDAR_TYPES and t not in topics.values()
+                    and counts[t] > 0)
     meta: dict[str, Any] = {
         "source_format": "rosbag1",
+        "unread_lidar_topics": unread,
         "bags": [p.name for p in bag_paths],
         "source_path": str(folder.resolve()),
         "topics": topics,
@@ -666,6 +671,8 @@ def read_rosbag1(
     if "ground_truth" in topics:
         stamps, xyz = index.track
         check_monotonic(ns_to_seconds(stamps), f"{owner[topics['ground_truth']].path} {topics['ground_truth']}")
+        check_track_values(ns_to_seconds(stamps), xyz, None,
+                           f"{owner[topics['ground_truth']].path} {topics['ground_truth']}")
         ground_truth = Track(ns_to_seconds(stamps), xyz)
     gaps = {key: count_gaps(stream.timestamps) for key, stream in (*lidar.items(), ("image", frames))
             if stream is not None}
@@ -787,6 +794,11 @@ def _build_audio(owner: dict[str, Bag], topics: dict[str, str], index: _BagIndex
     stamps_ns = np.asarray(index.stamp_ns[topic], dtype=np.int64)
     check_monotonic(ns_to_seconds(stamps_ns), what, strict=False)
     log_ns = np.asarray(index.log_ns[topic], dtype=np.int64)
+    if counts.size > RATE_MIN_MESSAGES:
+        # samples per second of stamps, all channels together: names a wrong channel count as such
+        values = nbytes // np.dtype(SAMPLE_FORMATS[fmt]).itemsize
+        check_audio_rate(values[1:] if stamp_at == "end" else values[:-1], np.diff(stamps_ns) / 1e9, rate,
+                         channels, f"{what} ({source})")
     layout = layout_audio(stamps_ns, counts, rate, stamp_at, what)
     if layout.gaps:
         log.warning("%s: %d gap(s) in the audio (dropped messages?), %.3f s filled with zeros",

@@ -39,6 +39,7 @@ from datamodules.recording import (
     RecordingError,
     Track,
     check_monotonic,
+    check_track_values,
     count_gaps,
     json_safe,
 )
@@ -171,6 +172,7 @@ def read_position_files(folder: Path, stamps: np.ndarray, names: Sequence[str]) 
     if not valid.all():
         log.warning("%s: %d of %d positions are not finite; marked invalid", folder, int((~valid).sum()), len(valid))
     xyz[~valid] = 0.0
+    check_track_values(stamps, xyz, valid, str(folder))
     return Track(stamps, xyz, valid)
 
 

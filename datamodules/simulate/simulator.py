@@ -14,7 +14,6 @@ import json
 import logging
 import time
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from datamodules.errors import ConfigError
 from datamodules.formats.mcap_file import read_mcap, write_mcap
 from datamodules.recording import (
     DRONE_TYPES,
@@ -39,6 +39,7 @@ from datamodules.simulate import scene as scene_sim
 from datamodules.simulate.acoustics import AudioConfig, render_audio
 from datamodules.simulate.drones import drone_spec
 from datamodules.simulate.trajectory import TrajectoryConfig, generate_trajectory
+from datamodules.workers import interruptible_pool
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +69,20 @@ class SimulationConfig:
     camera_offset_s: float = 0.033
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     audio: AudioConfig = field(default_factory=AudioConfig)
+
+    def check(self) -> None:
+        """Refuse settings that cannot make a recording (non-positive or too short duration, rate <= 0).
+
+        Raises:
+            ConfigError: naming the setting, its value and what is allowed.
+        """
+        shortest = 2.0 / min(self.lidar_rate, self.ground_truth_rate)
+        if not np.isfinite(self.duration) or self.duration < shortest:
+            raise ConfigError(f"duration (--seconds) must be at least {shortest:g} s (two LiDAR and ground-truth "
+                              f"periods), got {self.duration:g}")
+        rate = self.audio.sample_rate
+        if not np.isfinite(rate) or rate <= 0:
+            raise ConfigError(f"audio sample rate (--sample-rate) must be a positive number of Hz, got {rate:g}")
 
     def fingerprint(self) -> str:
         """Short hash of every parameter, used to recognise a recording made with these settings."""
@@ -207,6 +222,11 @@ def simulate_dataset(
     """Simulate ``sequences`` flights into ``out_dir`` (one MCAP each), resuming finished ones."""
     from tqdm import tqdm
 
+    if sequences < 1:
+        raise ConfigError(f"number of sequences (--sequences) must be at least 1, got {sequences}")
+    if workers < 1:
+        raise ConfigError(f"workers (--workers) must be at least 1, got {workers}")
+    config.check()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = [recording_path(out_dir, seed, i) for i in range(sequences)]
@@ -215,13 +235,24 @@ def simulate_dataset(
     if len(todo) < len(paths):
         log.info("%d of %d recordings already present in %s", len(paths) - len(todo), len(paths), out_dir)
     bar = tqdm(total=len(todo), desc="simulate", unit="rec", disable=not progress)
-    if workers > 1 and len(todo) > 1:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            for _ in pool.map(_simulate_one, todo):
+    finished = 0
+    try:
+        if workers > 1 and len(todo) > 1:
+            # leaving the block terminates the workers at once: Ctrl-C starts no further recording
+            with interruptible_pool(min(workers, len(todo))) as pool:
+                for _ in pool.imap_unordered(_simulate_one, todo):
+                    finished += 1
+                    bar.update()
+        else:
+            for job in todo:
+                _simulate_one(job)
+                finished += 1
                 bar.update()
-    else:
-        for job in todo:
-            _simulate_one(job)
-            bar.update()
+    except KeyboardInterrupt:
+        bar.close()
+        log.warning("interrupted: %d of %d recordings complete in %s, %d not started or discarded; run the same "
+                    "command again to resume", len(paths) - len(todo) + finished, len(paths), out_dir,
+                    len(todo) - finished)
+        raise
     bar.close()
     return paths

@@ -86,7 +86,7 @@ class BagWriter:
 
 def write_flight(folder: Path, compression: str | None = None, *, audio: str = "stamped", info: bool = True,
                  drop: tuple[int, ...] = (), sample_format: str = "S16LE", channels: int = CHANNELS,
-                 lidar: bool = True, gt: bool = True, seed: int = 0) -> dict:
+                 lidar: bool = True, gt: bool = True, seed: int = 0, mid360_topic: str = "/livox/lidar_360") -> dict:
     """A sensor bag (audio, Avia CustomMsg, Mid-360 PointCloud2, two cameras) and a ground-truth bag."""
     rng = np.random.default_rng(seed)
     folder.mkdir(parents=True, exist_ok=True)
@@ -141,7 +141,7 @@ def write_flight(folder: Path, compression: str | None = None, *, audio: str = "
                     for i, n in enumerate(("x", "y", "z", "intensity"))],
             is_bigendian=False, point_step=16, row_step=16 * m, data=np.frombuffer(cloud.tobytes(), np.uint8),
             is_dense=True)
-        bag.write("/livox/lidar_360", "sensor_msgs/msg/PointCloud2", msg, stamp + 15_000_000)
+        bag.write(mid360_topic, "sensor_msgs/msg/PointCloud2", msg, stamp + 15_000_000)
         truth["mid360"].append((ns_to_seconds(stamp), np.column_stack([cloud["x"], cloud["y"], cloud["z"]]),
                                 cloud["intensity"]))
         for side in ("left", "right"):

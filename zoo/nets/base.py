@@ -28,6 +28,7 @@ from typing import Any, ClassVar
 import torch
 from torch import nn
 
+from datamodules.errors import ConfigError
 from datamodules.features import image_recipe, mel_recipe, phase_recipe
 
 NUM_CLASSES = 6  #: five drone types + "no drone" (AV-FDTI class convention)
@@ -59,22 +60,22 @@ class TrajectoryNet(nn.Module):
         """The reference ``inputs`` with ``input_recipes`` merged over them, validated.
 
         Raises:
-            ValueError: an input the net does not declare, or a recipe unknown for that input's kind.
+            ConfigError: an input the net does not declare, or a recipe unknown for that input's kind.
         """
         recipes = dict(cls.inputs)
         if input_recipes is None:
             return recipes
         if not isinstance(input_recipes, Mapping):
-            raise ValueError(f"{cls.model_name} input_recipes must map input name -> recipe name, "
+            raise ConfigError(f"{cls.model_name} input_recipes must map input name -> recipe name, "
                              f"got {input_recipes!r}")
         for name, recipe in input_recipes.items():
             if name not in recipes:
-                raise ValueError(f"{cls.model_name} has no input {name!r} to give a recipe to; "
+                raise ConfigError(f"{cls.model_name} has no input {name!r} to give a recipe to; "
                                  f"its inputs: {recipes}")
             try:
                 RECIPE_LOOKUPS[name](recipe)
             except ValueError as error:
-                raise ValueError(f"{cls.model_name} input_recipes[{name!r}]: {error}") from None
+                raise ConfigError(f"{cls.model_name} input_recipes[{name!r}]: {error}") from None
             recipes[name] = recipe
         return recipes
 
@@ -85,15 +86,15 @@ class TrajectoryNet(nn.Module):
                 for name, recipe in self.inputs.items() if recipe != reference[name]}
 
     def check_inputs(self, inputs: dict[str, torch.Tensor]) -> None:
-        """Raise a ValueError naming the input, recipe and shape when ``inputs`` do not fit."""
+        """Raise a ConfigError naming the input, recipe and shape when ``inputs`` do not fit."""
         for name, shape in self.input_shapes().items():
             expected = " x ".join(map(str, shape))
             if name not in inputs:
-                raise ValueError(f"{self.model_name} needs input {name!r} (recipe {self.inputs[name]!r}, "
+                raise ConfigError(f"{self.model_name} needs input {name!r} (recipe {self.inputs[name]!r}, "
                                  f"B x {expected}); got keys {sorted(inputs)}")
             got = tuple(inputs[name].shape)
             if got[1:] != shape:
-                raise ValueError(f"{self.model_name} needs {name} of shape B x {expected} "
+                raise ConfigError(f"{self.model_name} needs {name} of shape B x {expected} "
                                  f"(recipe {self.inputs[name]!r}), got {got}")
 
     def input_shapes(self) -> dict[str, tuple[int, ...]]:

@@ -1,0 +1,133 @@
+"""Training commands with bad input: one line naming the cause and exit code 2, never a traceback; a NaN
+loss is never trained on silently. Each case is a row: what to change, the words the line must hold."""
+
+from __future__ import annotations
+
+import hashlib
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks.cli import main
+from datamodules.errors import ConfigError, NonFiniteLossError
+from datamodules.formats import open_recording
+from datamodules.formats.mcap_file import write_mcap
+from datamodules.recording import ArrayAudio, ArrayPointClouds
+from zoo.task import TrajectoryTask
+
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "student.yaml"
+SPLIT = "{train: [sim11-0000-avata], val: [sim11-0001-m300], test: [sim11-0002-mavic2]}"
+
+
+def tree_hashes(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def rewrite_audio(folder: Path, change) -> None:
+    """Rewrite every recording of ``folder`` with its audio replaced by ``change(audio)`` (None: no audio)."""
+    for path in sorted(folder.glob("*.mcap")):
+        rec = open_recording(path)
+        audio = rec.audio
+        rec.audio = change(ArrayAudio(audio.read(0, audio.num_samples), audio.sample_rate, audio.t0,
+                                      audio.mic_positions, audio.sample_format))
+        rec.lidar = {s: ArrayPointClouds(c.timestamps, [c[i] for i in range(len(c))]) for s, c in rec.lidar.items()}
+        rec.frames = None
+        write_mcap(rec, path, overwrite=True)
+
+
+def no_audio(audio):
+    return None
+
+
+def three_channels(audio):
+    return ArrayAudio(audio.samples[:3], audio.sample_rate, audio.t0, audio.mic_positions[:3], audio.sample_format)
+
+
+#: (id, change to the data or None, extra arguments (DATA: the data folder), words of the one line)
+CASES = [
+    ("unknown_net", None, ["--model.net", "bogus"], ["unknown model 'bogus'", "known models:", "student"]),
+    ("alpha_outside", None, ["--model.alpha", "3"], ["alpha must lie in [0, 1], got 3"]),
+    ("unknown_net_argument", None, ["--model.net_kwargs", "{widths: 3}"],
+     ["model 'student'", "unexpected keyword argument 'widths'", "its arguments: in_channels"]),
+    ("missing_checkpoint", None, ["--ckpt_path", "DATA/missing.ckpt"], ["missing.ckpt", "not found"]),
+    ("empty_split", None, ["--data.split", "{train: [nope]}"], ["not found", "nope"]),
+    ("missing_data", None, ["--data.root", "DATA/nowhere"], ["nowhere", "no such file or directory"]),
+    ("no_audio", no_audio, [], ["sim11_0000.mcap", "needs audio", "has none"]),
+    ("three_channels", three_channels, [],
+     ["needs audio_mel of shape B x 4 x 64 x 64", "got (", ", 3, 64, 64)", "sim11_0000.mcap"]),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_fit_with_bad_input_prints_one_line(case, labelled_dir, tmp_path, capsys):
+    _, change, extra, words = case
+    data = tmp_path / "data"
+    shutil.copytree(labelled_dir, data)
+    if change is not None:
+        rewrite_audio(data, change)
+    before = tree_hashes(data)
+    args = ["fit", "--config", str(CONFIG), "--data.root", str(data), "--data.split", SPLIT,
+            "--data.window_seconds", "1.0", "--data.cache_dir", str(tmp_path / "cache"),
+            "--trainer.default_root_dir", str(tmp_path / "runs"), "--trainer.fast_dev_run", "true",
+            "--trainer.enable_progress_bar", "false", *[w.replace("DATA", str(data)) for w in extra]]
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("aaute: error:")]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for word in words:
+        assert word in lines[0], (word, lines[0])
+    assert tree_hashes(data) == before
+
+
+def test_debug_shows_the_training_commands_traceback(labelled_dir, tmp_path):
+    args = ["fit", "--config", str(CONFIG), "--data.root", str(labelled_dir), "--model.net", "bogus",
+            "--trainer.default_root_dir", str(tmp_path), "--debug"]
+    with pytest.raises(ConfigError, match="unknown model 'bogus'"):
+        main(args)
+
+
+def _batch(task: TrajectoryTask, batch_size: int = 3) -> dict[str, torch.Tensor]:
+    batch = dict(task.net.example_inputs(batch_size))
+    batch.update(gt=torch.rand(batch_size, 3) * 10, gt_valid=torch.ones(batch_size, dtype=torch.bool),
+                 pseudo=torch.rand(batch_size, 3) * 10, pseudo_valid=torch.ones(batch_size, dtype=torch.bool),
+                 time=1692845357.0 + torch.arange(batch_size, dtype=torch.float64),
+                 sequence=torch.tensor([0, 0, 1])[:batch_size], class_id=torch.zeros(batch_size, dtype=torch.long),
+                 visible=torch.ones(batch_size))
+    return batch
+
+
+@pytest.mark.parametrize(("what", "words"), [
+    ("gt", ["training loss is nan", "labelled gt targets are NaN", "sequence 0 at t = 1692845358.000 s"]),
+    ("input", ["input 'audio_mel' is NaN or infinite", "sequence 1 at t = 1692845359.000 s"]),
+    ("weights", ["with finite inputs and targets", "network's positions are NaN", "lower the learning rate"]),
+])
+def test_a_nan_training_loss_raises_naming_the_windows(what, words):
+    task = TrajectoryTask("student", alpha=0.0)
+    batch = _batch(task)
+    if what == "gt":
+        batch["gt"][1] = float("nan")
+    elif what == "input":
+        batch["audio_mel"][2] = float("nan")
+    else:
+        with torch.no_grad():
+            next(task.net.parameters()).fill_(float("nan"))
+    with pytest.raises(NonFiniteLossError) as raised:
+        task.training_step(batch, 0)
+    for word in words:
+        assert word in str(raised.value), (word, str(raised.value))
+
+
+def test_invalid_nan_targets_are_masked_not_trained_on():
+    task = TrajectoryTask("student", alpha=0.0)
+    batch = _batch(task)
+    batch["gt"][1] = float("nan")
+    batch["gt_valid"][1] = False  # a missing label: masked out of the loss
+    outputs = task.net(task._inputs(batch))
+    loss, _ = task.objective(outputs, batch)
+    assert loss is not None and np.isfinite(float(loss))
+    task._check_finite(loss, outputs, batch, "training")  # no error
