@@ -221,12 +221,22 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
     from lightning.pytorch.cli import LightningCLI
 
     from datamodules.mmaud import MMAUDDataModule
+    from zoo import checkpoint_guard
     from zoo.task import TrajectoryTask
 
     class _CLI(LightningCLI):
+        pending_weights = None
+
+        def add_arguments_to_parser(self, parser) -> None:
+            parser.add_argument("--weights", type=str | None, default=None,
+                                help="registered weights (aaute weights list) or a weights file, instead of ckpt_path")
+            parser.add_argument("--use_checkpoint_model", type=bool, default=False,
+                                help="run the model of --ckpt_path / --weights even if another one is configured")
+
         def instantiate_classes(self) -> None:
             if instantiate:
                 super().instantiate_classes()
+                checkpoint_guard.load_pending(self.model, self.pending_weights)
 
         def _parse_ckpt_path(self) -> None:
             # Lightning merges a checkpoint's hyperparameters over the command line; where this run writes
@@ -234,6 +244,8 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
             subcommand = self.config.get("subcommand")
             init_args = self.config[subcommand].get("model", {}).get("init_args") if subcommand else None
             given = {key: init_args.get(key) for key in RUN_SETTINGS} if init_args is not None else {}
+            if subcommand:  # a checkpoint of another net is refused, not silently swapped in
+                self.pending_weights = checkpoint_guard.check_run(subcommand, self.config[subcommand])
             super()._parse_ckpt_path()
             for key, value in given.items():
                 self.config[subcommand]["model"]["init_args"][key] = value
@@ -261,7 +273,13 @@ def main(argv: Sequence[str] | None = None,
     given = argv
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in LIGHTNING_COMMANDS:
-        lightning_main(given)
+        from zoo.checkpoints import CheckpointError
+
+        try:
+            lightning_main(given)
+        except (CheckpointError, FileNotFoundError) as error:
+            log.error("%s", error)
+            return 2
         return 0
     args = build_parser(extra).parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
