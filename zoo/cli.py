@@ -192,6 +192,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     smooth.add_argument("--horizon", type=float, help="flag query times farther than this (s) from any data")
     smooth.set_defaults(func=_cmd_smooth)
 
+    from zoo import weights_cli
+
+    weights_cli.add_commands(sub)  # weights list|register, import-checkpoint, export
+
 
 def build_parser(extra: Callable[[argparse._SubParsersAction], None] | None = None) -> argparse.ArgumentParser:
     """The ``aaute`` parser: the zoo's subcommands plus those ``extra`` adds (the benchmarks' own)."""

@@ -252,6 +252,7 @@ def build_net(contents: CheckpointContents, model: str | None = None, net_kwargs
     kwargs = {**(entry.net_kwargs if entry else {}), **contents.net_kwargs, **(net_kwargs or {})}
     net = get_model(name, **kwargs)
     load_state_checked(net, contents.state_dict, str(contents.path), f"{name} {kwargs or ''}".strip())
+    net.net_kwargs = kwargs  #: what it was built with (exports and registrations record it)
     return net.eval()
 
 
