@@ -337,3 +337,29 @@ def convert_state(state: Any, fmt: str, source: str = "state dict", model: str |
     ordered = {key: converted[key] for key in expected}
     net.load_state_dict(ordered, strict=True)
     return Conversion(layout, net_kwargs, ordered, renamed, dropped, net.eval())
+
+
+def to_original(net: Any, fmt: str) -> dict[str, torch.Tensor]:
+    """The net's weights in an original layout, for the original code's ``load_state_dict`` (strict).
+
+    Only ``aaute`` (the student as AAUTE's ``AudioNet``) is written: the inverse of its renames, plus
+    the four declared-but-unused BatchNorms at their initial values so that a strict load succeeds.
+    """
+    from torch import nn
+
+    if fmt != "aaute" or getattr(net, "model_name", "") != "student":
+        raise CheckpointError(f"only the student can be written in an original layout (--original-format aaute); "
+                              f"got {getattr(net, 'model_name', type(net).__name__)} as {fmt}")
+    layout = LAYOUTS["aaute"][0]
+    state: dict[str, torch.Tensor] = {}
+    for key, value in net.state_dict().items():
+        for pattern, replacement in layout.rules:
+            if key.startswith(replacement):
+                state[pattern.replace("\\.", ".") + key[len(replacement):]] = value.detach().clone()
+                break
+        else:
+            raise CheckpointError(f"{key} has no place in the {fmt} layout ({layout.original})")
+    kernels = int(state["convt1.weight"].shape[0])
+    for i in range(1, 5):  # declared, never called in the original: their initial values
+        state.update({f"bn{i}.{name}": value for name, value in nn.BatchNorm2d(kernels).state_dict().items()})
+    return state

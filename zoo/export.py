@@ -52,6 +52,7 @@ class Exported:
     checkpoint: Path
     onnx: Path | None
     max_difference: float | None  #: largest |onnxruntime - PyTorch| over the outputs on example inputs
+    original: Path | None = None  #: the state dict in an original code's layout, if asked for
 
 
 def audio_only(net: nn.Module) -> bool:
@@ -118,20 +119,31 @@ def export_onnx(net: nn.Module, path: Path, metadata: dict[str, str], tolerance:
 
 
 def export(net: nn.Module, out: str | Path, net_kwargs: dict[str, Any], provenance: dict[str, Any],
-           onnx: bool | None = None, overwrite: bool = False) -> Exported:
-    """Write ``<out>.pt`` and, for audio-only nets (or ``onnx=True``), ``<out>.onnx`` checked by onnxruntime."""
+           onnx: bool | None = None, overwrite: bool = False, original_format: str | None = None) -> Exported:
+    """Write ``<out>.pt`` and, for audio-only nets (or ``onnx=True``), ``<out>.onnx`` checked by onnxruntime.
+
+    ``original_format`` (``aaute``) also writes ``<out>_aaute.pth``: a plain state dict in the original
+    code's layout (:func:`zoo.converters.to_original`).
+    """
     from zoo.weights import save_weights_file
 
     out = Path(out)
     stem = out.with_suffix("") if out.suffix in (".pt", ".onnx") else out
     checkpoint, onnx_path = stem.with_suffix(".pt"), stem.with_suffix(".onnx")
+    original_path = stem.with_name(f"{stem.name}_{original_format}.pth") if original_format else None
     want_onnx = audio_only(net) if onnx is None else onnx
-    for path in (checkpoint, *([onnx_path] if want_onnx else [])):
+    for path in (checkpoint, *([onnx_path] if want_onnx else []), *([original_path] if original_path else [])):
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} already exists; pass --overwrite to replace it")
+    if original_path is not None:
+        from zoo.converters import to_original
+
+        state = to_original(net, original_format)
+        with atomic_write(original_path) as tmp:
+            torch.save(state, tmp)
     worst = None
     if want_onnx:
         worst = export_onnx(net, onnx_path, onnx_metadata(net, net_kwargs, provenance))
         log.info("%s written; onnxruntime agrees with PyTorch within %.2g", onnx_path, worst)
     save_weights_file(net, checkpoint, net_kwargs, {"provenance": provenance}, overwrite=True)
-    return Exported(checkpoint, onnx_path if want_onnx else None, worst)
+    return Exported(checkpoint, onnx_path if want_onnx else None, worst, original_path)

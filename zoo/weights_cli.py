@@ -91,7 +91,9 @@ def _cmd_export(args: argparse.Namespace) -> int:
     if hparams:
         provenance["hyper_parameters"] = {key: hparams.get(key) for key in ("alpha", "loss", "lr")}
     done = export(net, args.out, getattr(net, "net_kwargs", {}), provenance,
-                  onnx=args.onnx, overwrite=args.overwrite)
+                  onnx=args.onnx, overwrite=args.overwrite, original_format=args.original_format)
+    if done.original is not None:
+        log.info("%s written (the %s code's layout)", done.original, args.original_format)
     log.info("%s written%s", done.checkpoint, f"; {done.onnx} (max |onnxruntime - torch| {done.max_difference:.2g})"
              if done.onnx else " (no ONNX: the net reads images; --onnx to try)")
     return 0
@@ -129,5 +131,8 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     exp.add_argument("--out", required=True, type=Path, help="output stem: writes <out>.pt and <out>.onnx")
     exp.add_argument("--onnx", action=argparse.BooleanOptionalAction, default=None,
                      help="write ONNX (default: for nets that read audio only)")
+    exp.add_argument("--original-format", choices=["aaute"],
+                     help="also write <out>_<format>.pth in the original code's layout (the student as AAUTE's "
+                          "AudioNet)")
     exp.add_argument("--overwrite", action="store_true", help="replace existing files")
     exp.set_defaults(func=_cmd_export)

@@ -10,9 +10,9 @@ import torch
 from torch.nn import functional as F
 
 from tests.zoo import original_layouts as originals
-from zoo.checkpoints import WeightsMismatchError
+from zoo.checkpoints import CheckpointError, WeightsMismatchError
 from zoo.cli import main
-from zoo.converters import FORMATS, UnknownLayoutError, convert_state
+from zoo.converters import FORMATS, UnknownLayoutError, convert_state, to_original
 from zoo.registry import get_model
 from zoo.weights import load_pretrained
 from zoo.weights_cli import FORMATS as CLI_FORMATS
@@ -184,3 +184,15 @@ def test_import_checkpoint_command_writes_a_self_describing_file(tmp_path, caplo
     assert f"{evil}: refused: its pickle needs code" in caplog.records[-1].getMessage()
     assert not (tmp_path / "x.pt").exists()
     assert main(["import-checkpoint", "--format", "aaute", str(source), "--out", str(out)]) == 2  # exists
+
+
+def test_the_student_written_in_the_aaute_layout_converts_back_unchanged():
+    original = originals.aaute_student(seed=6)
+    net = convert_state(original, "aaute").net
+    written = to_original(net, "aaute")
+    assert set(written) == set(original)
+    assert all(torch.equal(written[key], original[key]) for key in original if not key.startswith("bn"))
+    back = convert_state(written, "aaute")
+    assert all(torch.equal(back.state_dict[key], value) for key, value in net.state_dict().items())
+    with pytest.raises(CheckpointError, match="only the student"):
+        to_original(get_model("audionet"), "aaute")

@@ -26,7 +26,7 @@ def test_export_writes_a_checkpoint_loadable_alone_and_an_onnx_file_equal_to_pyt
     net = get_model("student", kernels=8, feature_dim=64).eval()
     source = save_weights_file(net, tmp_path / "trained.pt", {"kernels": 8, "feature_dim": 64}, {"data": "unit"})
     stem = tmp_path / "deploy" / "student"
-    assert main(["export", "--weights", str(source), "--out", str(stem)]) == 0
+    assert main(["export", "--weights", str(source), "--out", str(stem), "--original-format", "aaute"]) == 0
 
     loaded = load_pretrained("student", stem.with_suffix(".pt"))  # no config: the file describes the net
     mel = torch.rand(5, 4, 64, 64, generator=torch.Generator().manual_seed(7))
@@ -44,6 +44,14 @@ def test_export_writes_a_checkpoint_loadable_alone_and_an_onnx_file_equal_to_pyt
     (position,) = session.run(["position"], {"audio_mel": mel.numpy()})
     assert float((torch.from_numpy(position) - expected).abs().max()) <= 1e-5
     assert main(["export", "--weights", str(source), "--out", str(stem)]) == 2  # never overwritten silently
+
+    original = torch.load(stem.with_name("student_aaute.pth"), weights_only=True)  # AAUTE's AudioNet layout
+    assert {"convt1.weight", "fc_audio.bias", "position_est3.weight", "bn4.running_var"} <= set(original)
+    imported = tmp_path / "imported.pt"
+    assert main(["import-checkpoint", "--format", "aaute", str(stem.with_name("student_aaute.pth")),
+                 "--out", str(imported)]) == 0
+    with torch.no_grad():
+        assert torch.equal(load_pretrained("student", imported)({"audio_mel": mel})["position"], expected)
 
 
 def test_an_onnx_file_that_disagrees_is_not_kept(tmp_path):
