@@ -75,7 +75,7 @@ def read_file(path: str | Path) -> Any:
                 f"(torch.save(model.state_dict(), ...)) by the code that made it") from None
         raise CheckpointError(f"{path}: not a readable torch file ({text.splitlines()[0][:200]})") from None
     except (RuntimeError, EOFError, zipfile.BadZipFile, KeyError, ValueError, OSError) as error:
-        first = str(error).splitlines()[0][:160] if str(error) else type(error).__name__
+        first = str(error).splitlines()[0].split(". ")[0][:160] if str(error) else type(error).__name__
         raise CheckpointError(f"{path}: truncated or corrupt weights file, expected a complete torch.save archive "
                               f"({first})") from None
 

@@ -247,7 +247,8 @@ def _apply_rule(layout: Layout, key: str) -> str | None:
     return target
 
 
-def identify(fmt: str, state: dict[str, torch.Tensor], model: str | None = None) -> Layout:
+def identify(fmt: str, state: dict[str, torch.Tensor], model: str | None = None, source: str = "state dict"
+             ) -> Layout:
     """The layout of ``fmt`` that ``state`` has (``model`` picks one where a format has several).
 
     Raises:
@@ -267,7 +268,7 @@ def identify(fmt: str, state: dict[str, torch.Tensor], model: str | None = None)
     hint = [name for name in FORMATS if name != fmt and any(
         all(key in state for key in layout.signature) for layout in _candidates(name, state))]
     raise UnknownLayoutError(
-        f"the state dict matches no {fmt} layout{f' of model {model}' if model else ''}"
+        f"{source}: the state dict matches no {fmt} layout{f' of model {model}' if model else ''}"
         f"{f' (it looks like --format {hint[0]})' if hint else ''}; recognised layouts: {recognised}; "
         f"first keys that did not match: {', '.join(unmatched[:SHOWN])}")
 
@@ -295,7 +296,7 @@ def convert_state(state: Any, fmt: str, source: str = "state dict", model: str |
     from zoo.registry import get_model
 
     state = _unwrap(state, source)
-    layout = identify(fmt, state, model)
+    layout = identify(fmt, state, model, source)
     converted: dict[str, torch.Tensor] = {}
     renamed: dict[str, str] = {}
     dropped: list[str] = []
