@@ -12,7 +12,7 @@ setup: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --upgrade pip
-	$(BIN)/python -m pip install -c constraints.txt -e ".[dev,rosbag]"
+	$(BIN)/python -m pip install -c constraints.txt -e ".[dev,rosbag,export]"
 	touch $@
 
 # the comparison table on simulated data: simulate, label, train and test every model, profile, render

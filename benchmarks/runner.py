@@ -182,8 +182,22 @@ def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary
                 status = f"FAILED: {row['error']} (log: {suite.out / log_path})"
             append_rows(suite.results_path, [row])
             log.info("%s %s %s", _progress(summary, len(running), len(pending), start), job_id, status)
+            _register_weights(suite, job, row)
         if running:
             time.sleep(poll_seconds)
+
+
+def _register_weights(suite: Suite, job: JobSpec, row: dict[str, Any]) -> None:
+    """A finished model job's best checkpoint becomes named weights; a failure here never fails the suite."""
+    from benchmarks.job_weights import register_job_weights
+
+    try:
+        entry = register_job_weights(suite, job, row)
+    except (ValueError, OSError) as error:
+        log.warning("job %s: its checkpoint was not registered as weights: %s", job.job_id, error)
+        return
+    if entry is not None:
+        log.info("weights %s registered (%s)", entry.name, entry.source)
 
 
 def run_suite(suite: Suite, rerun: bool = False, launcher: str | None = None, only: list[str] | None = None

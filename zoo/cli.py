@@ -228,6 +228,10 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     smooth.add_argument("--overwrite", action="store_true", help="replace an existing DST (never SRC itself)")
     smooth.set_defaults(func=_cmd_smooth)
 
+    from zoo import weights_cli
+
+    weights_cli.add_commands(sub)  # weights list|register, import-checkpoint, export
+
 
 def build_parser(extra: Callable[[argparse._SubParsersAction], None] | None = None) -> argparse.ArgumentParser:
     """The ``aaute`` parser: the zoo's subcommands plus those ``extra`` adds (the benchmarks' own)."""
@@ -259,9 +263,18 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
     from lightning.pytorch.cli import LightningCLI
 
     from datamodules.mmaud import MMAUDDataModule
+    from zoo import checkpoint_guard
     from zoo.task import TrajectoryTask
 
     class _CLI(LightningCLI):
+        pending_weights = None
+
+        def add_arguments_to_parser(self, parser) -> None:
+            parser.add_argument("--weights", type=str | None, default=None,
+                                help="registered weights (aaute weights list) or a weights file, instead of ckpt_path")
+            parser.add_argument("--use_checkpoint_model", type=bool, default=False,
+                                help="run the model of --ckpt_path / --weights even if another one is configured")
+
         def instantiate_classes(self) -> None:
             if instantiate:
                 try:
@@ -269,6 +282,7 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
                 except ValueError as error:  # jsonargparse keeps only the text of the class's own error
                     _raise_project_error(self.config, error)
                     raise
+                checkpoint_guard.load_pending(self.model, self.pending_weights)
 
         def _parse_ckpt_path(self) -> None:
             # Lightning merges a checkpoint's hyperparameters over the command line; where this run writes
@@ -276,6 +290,8 @@ def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: boo
             subcommand = self.config.get("subcommand")
             init_args = self.config[subcommand].get("model", {}).get("init_args") if subcommand else None
             given = {key: init_args.get(key) for key in RUN_SETTINGS} if init_args is not None else {}
+            if subcommand:  # a checkpoint of another net is refused, not silently swapped in
+                self.pending_weights = checkpoint_guard.check_run(subcommand, self.config[subcommand])
             super()._parse_ckpt_path()
             for key, value in given.items():
                 self.config[subcommand]["model"]["init_args"][key] = value

@@ -147,10 +147,13 @@ def test_the_slurm_launcher_takes_the_suites_options(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_demo_suite_runs_end_to_end_to_the_leaderboard(tmp_path):
+def test_the_demo_suite_runs_end_to_end_to_the_leaderboard(tmp_path, monkeypatch):
     """`make demo` in a temporary folder: about 12 minutes on 2 cores."""
     from benchmarks.leaderboard import render_leaderboard
     from zoo.registry import list_models
+    from zoo.weights import list_weights, load_pretrained
+
+    monkeypatch.setenv("AAUTE_CACHE", str(tmp_path / "home_cache"))  # the weights registry of this run
 
     suite = load_suite(REPO / "configs" / "benchmark" / "quick.yaml",
                        {"out": str(tmp_path / "benchmark"), "data.root": str(tmp_path / "data")})
@@ -163,3 +166,6 @@ def test_the_demo_suite_runs_end_to_end_to_the_leaderboard(tmp_path):
     assert set(rows.loc[rows["kind"] != "profile", "protocol"]) == {"by_sequence", "random_windows"}
     report = render_leaderboard(suite.results_path, tmp_path / "leaderboard")
     assert "Constant (mean train GT)" in report.markdown and (tmp_path / "leaderboard" / "leaderboard.html").is_file()
+    assert {f"{model}.sim_quick" for model in list_models()} | {"student.sim_quick_random_windows"} <= set(
+        list_weights())
+    assert not load_pretrained("student", weights="sim_quick").training

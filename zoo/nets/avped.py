@@ -29,6 +29,7 @@ import torch
 
 from zoo.nets.base import NUM_CLASSES, TrajectoryNet
 from zoo.nets.blocks import (
+    DETECT_HEADS,
     DetectNet,
     FourBranchAudio,
     VisibilityGate,
@@ -53,6 +54,8 @@ class AVPed(TrajectoryNet):
         visibility_weight: weight of the visibility cross-entropy (AV-PedAware: 0.5).
         class_weight: weight of the class cross-entropy (AV-FDTI: 0.1).
         input_recipes: recipes replacing the reference ones, e.g. ``{"image": "resnet64"}`` (reduced budget).
+        heads: the DetectNet heads kept (all three; the original AV-PedAware, imported with ``aaute
+            import-checkpoint --format avped``, has only ``("position",)``).
     """
 
     inputs = {"audio_mel": "avfdti", "image": "resnet256"}
@@ -61,13 +64,13 @@ class AVPed(TrajectoryNet):
     def __init__(self, in_channels: int = 4, kernels: int = 16, feature_dim: int = 256, dropout: float = 0.3,
                  resnet_weights: str | None = None, gate_hidden: tuple[int, ...] = (128,),
                  num_classes: int = NUM_CLASSES, visibility_weight: float = 0.5, class_weight: float = 0.1,
-                 input_recipes: dict[str, str] | None = None):
+                 input_recipes: dict[str, str] | None = None, heads: tuple[str, ...] = DETECT_HEADS):
         super().__init__(in_channels, class_weight, input_recipes)
         self.visibility_weight = visibility_weight
         self.audio = FourBranchAudio(in_channels, kernels, feature_dim, dropout)
         self.visual = VisualEncoder(feature_dim, resnet_weights)
         self.gate = VisibilityGate(feature_dim, tuple(gate_hidden))
-        self.head = DetectNet(feature_dim, num_classes)
+        self.head = DetectNet(feature_dim, num_classes, heads=tuple(heads))
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         self.check_inputs(inputs)

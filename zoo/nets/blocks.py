@@ -120,22 +120,35 @@ class MLP(nn.Sequential):
         super().__init__(*layers)
 
 
-class DetectNet(nn.Module):
-    """Three independent heads on a d-vector: position (3), class logits (6), trajectory (10 x 3)."""
+DETECT_HEADS = ("position", "classes", "trajectory")
 
-    def __init__(self, feature_dim: int, num_classes: int = NUM_CLASSES, steps: int = 10):
+
+class DetectNet(nn.Module):
+    """Three independent heads on a d-vector: position (3), class logits (6), trajectory (10 x 3).
+
+    ``heads`` keeps a subset (always with ``position``): the original AV-PedAware has a position head only.
+    """
+
+    def __init__(self, feature_dim: int, num_classes: int = NUM_CLASSES, steps: int = 10,
+                 heads: tuple[str, ...] = DETECT_HEADS):
         super().__init__()
+        unknown = sorted(set(heads) - set(DETECT_HEADS))
+        if unknown or "position" not in heads:
+            raise ValueError(f"DetectNet heads must include 'position' and be among {DETECT_HEADS}, got {heads}")
         self.steps = steps
         self.position = MLP((feature_dim, 256, 128, 3))
-        self.classes = MLP((feature_dim, 256, 128, num_classes))
-        self.trajectory = MLP((feature_dim, 256, 128, 3 * steps))
+        if "classes" in heads:
+            self.classes = MLP((feature_dim, 256, 128, num_classes))
+        if "trajectory" in heads:
+            self.trajectory = MLP((feature_dim, 256, 128, 3 * steps))
 
     def forward(self, features: torch.Tensor) -> dict[str, torch.Tensor]:
-        return {
-            "position": self.position(features),
-            "class_logits": self.classes(features),
-            "trajectory": self.trajectory(features).view(-1, self.steps, 3),
-        }
+        outputs = {"position": self.position(features)}
+        if hasattr(self, "classes"):
+            outputs["class_logits"] = self.classes(features)
+        if hasattr(self, "trajectory"):
+            outputs["trajectory"] = self.trajectory(features).view(-1, self.steps, 3)
+        return outputs
 
 
 class VisibilityGate(nn.Module):
