@@ -124,7 +124,21 @@ def _sdpa_flops(q_shape, k_shape, v_shape, *args, out_shape=None, **kwargs) -> i
     return 2 * math.prod(batch) * queries * keys * (depth + value_depth)
 
 
+def _vector_norm_flops(x_shape, *args, out_shape=None, **kwargs) -> int:
+    """A 2-norm: one multiply-accumulate per input element."""
+    return 2 * math.prod(x_shape)
+
+
+def _solve_flops(a_shape, b_shape, *args, out_shape=None, **kwargs) -> int:
+    """A batched linear solve by LU: n^3 / 3 for the factorisation and n^2 per right-hand side."""
+    *batch, n, _ = a_shape
+    columns = b_shape[-1] if len(b_shape) == len(a_shape) else 1
+    return 2 * math.prod(batch) * (n ** 3 // 3 + n * n * columns)
+
+
 MAC_FORMULAS: dict[Any, Callable[..., int]] = {
+    aten.linalg_vector_norm: _vector_norm_flops,
+    aten._linalg_solve_ex: _solve_flops,
     aten.convolution: _conv_flops,
     aten._convolution: _conv_flops,
     aten.convolution_overrideable: _conv_flops,
@@ -154,6 +168,10 @@ NON_MAC_OPS = frozenset({
     # pooling and resampling
     "max_pool2d_with_indices", "max_pool3d_with_indices", "avg_pool2d", "avg_pool3d", "_adaptive_avg_pool2d",
     "adaptive_max_pool2d", "upsample_bilinear2d", "upsample_nearest2d",
+    # search: ranking, rounding, masks and small bookkeeping (srp_phat)
+    "topk", "sort", "round", "floor", "ceil", "bucketize", "bitwise_and", "bitwise_or", "bitwise_not", "any",
+    "isnan", "nanmedian", "rsub", "remainder", "index_put_", "scalar_tensor", "_local_scalar_dense", "diagonal",
+    "eye", "squeeze_", "_linalg_check_errors", "max_pool1d",
 })
 
 
@@ -200,7 +218,11 @@ def _evaluate(module: nn.Module, inputs: Any, *modes: Any) -> None:
     """One forward pass in eval mode without gradients under ``modes``; the training flag is restored."""
     training = module.training
     module.eval()
+    prepare = getattr(module, "prepare", None)  # one-off set-up of the first call (srp_phat's null threshold)
     try:
+        if prepare is not None:
+            with torch.no_grad():
+                prepare(inputs)
         with torch.no_grad(), ExitStack() as stack:
             for mode in modes:
                 stack.enter_context(mode)

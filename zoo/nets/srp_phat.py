@@ -333,6 +333,13 @@ class SRPPhat(TrajectoryNet):
                      1.0 - self.false_alarm, self.null_frames)
         return self._thresholds[key]
 
+    def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
+        """Compute the coarse grid and detection threshold of the inputs' geometry (otherwise the first call does)."""
+        mics = inputs.get("mic_positions")
+        for geometry in ([self.default_mics] if mics is None else torch.unique(mics.detach().cpu().double(), dim=0)):
+            self._coarse_grid(geometry)
+            self.threshold(geometry)
+
     # ------------------------------------------------------------------------------ forward
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
