@@ -67,16 +67,17 @@ def _gpytorch_model(
     y = torch.as_tensor((xyz - centre).T, dtype=torch.float64)
     batch = torch.Size([3])
     base = gpytorch.kernels.ScaleKernel(gpytorch.kernels.RBFKernel(batch_shape=batch), batch_shape=batch)
-    base.base_kernel.lengthscale = lengthscale
-    base.outputscale = outputscale
+    base = base.double()  # float64 before the values go in: GPyTorch's setters would round floats to float32
+    base.base_kernel.lengthscale = torch.tensor(lengthscale, dtype=torch.float64)
+    base.outputscale = torch.tensor(outputscale, dtype=torch.float64)
     kernel = base
     if ski:
         grid = int(np.ceil((rel.max() + 2 * lengthscale) / (lengthscale / 10))) + 1
         kernel = gpytorch.kernels.GridInterpolationKernel(
             base, grid_size=grid, num_dims=1, grid_bounds=[(-lengthscale, float(rel.max()) + lengthscale)]
         )
-    likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=batch)
-    likelihood.noise = noise
+    likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=batch).double()
+    likelihood.noise = torch.tensor(noise, dtype=torch.float64)
     model = Model(x, y, likelihood, kernel).double().eval()
     likelihood.double().eval()
     settings = gpytorch.settings

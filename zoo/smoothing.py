@@ -155,8 +155,9 @@ def _make_kernel(kernel: str, batch: int) -> gpytorch.kernels.ScaleKernel:
 def _axis_kernel(hp: GPHyperparameters, axis: int) -> gpytorch.kernels.ScaleKernel:
     """An unbatched GPyTorch kernel with the hyperparameters of ``axis``."""
     kernel = _make_kernel(hp.kernel, 1)
-    kernel.base_kernel.lengthscale = hp.lengthscale[axis]
-    kernel.outputscale = hp.outputscale[axis]
+    # tensors in float64: GPyTorch's setters turn a Python float into a float32 tensor first
+    kernel.base_kernel.lengthscale = torch.tensor(hp.lengthscale[axis], dtype=_DTYPE)
+    kernel.outputscale = torch.tensor(hp.outputscale[axis], dtype=_DTYPE)
     return kernel
 
 
