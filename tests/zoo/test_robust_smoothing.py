@@ -163,6 +163,9 @@ def test_causal_mode_emits_at_once_with_bounded_window():
     for i in range(len(t)):
         lagged.update(t[i], y[i])
         assert len(lagged._frames) <= 8
+    revised = OnlineSmoother(HP, lag=0.0, window=1.0)  # past weights revised, emitted rows final
+    rows = [row for i in range(len(t)) for row in revised.update(t[i], y[i])]
+    assert [r.timestamp for r in rows] == list(t) and len(revised._frames) <= 12
 
 
 # ------------------------------------------------------------------------------------------- fitting
