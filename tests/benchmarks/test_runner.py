@@ -163,3 +163,14 @@ def test_the_demo_suite_runs_end_to_end_to_the_leaderboard(tmp_path):
     assert set(rows.loc[rows["kind"] != "profile", "protocol"]) == {"by_sequence", "random_windows"}
     report = render_leaderboard(suite.results_path, tmp_path / "leaderboard")
     assert "Constant (mean train GT)" in report.markdown and (tmp_path / "leaderboard" / "leaderboard.html").is_file()
+
+
+def test_the_paper_suite_smooths_with_the_papers_gp_and_the_others_with_the_default():
+    import json
+
+    paper = [j for j in expand_jobs(load_suite(REPO / "configs" / "benchmark" / "paper.yaml")) if j.kind == "model"]
+    for job in paper:
+        at = job.cli_args.index("--model.smoother")
+        assert json.loads(job.cli_args[at + 1]) == {"preset": "paper"}
+    quick = [j for j in expand_jobs(load_suite(REPO / "configs" / "benchmark" / "quick.yaml")) if j.kind == "model"]
+    assert quick and all("--model.smoother" not in j.cli_args for j in quick)  # the model configs' robust preset
