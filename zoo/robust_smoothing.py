@@ -254,14 +254,13 @@ def _filter(model: _Model, y: torch.Tensor, noise: torch.Tensor, observed: torch
 
 def _smoother(model: _Model, mf: torch.Tensor, Pf: torch.Tensor):
     """RTS smoother by reverse parallel scan: smoothed means (N, B, 3) and covariances (N, B, 3, 3)."""
-    n = mf.shape[0]
     A_next, Q_next = model.A[1:], model.Q[1:]
     Pp = A_next @ Pf[:-1] @ A_next.transpose(-1, -2) + Q_next
     E = torch.linalg.solve(Pp, A_next @ Pf[:-1]).transpose(-1, -2)
     end = torch.cat([model.start[1:], torch.ones(1, dtype=torch.bool)])  # last step of a track
-    E = torch.cat([E, torch.zeros_like(E[:1])])
+    E = torch.cat([E, torch.zeros_like(model.A[:1])])
     E = torch.where(end[:, None, None, None], torch.zeros_like(E), E)
-    A_used = torch.cat([A_next, torch.zeros_like(A_next[:1])]) if n > 1 else torch.zeros_like(model.A)
+    A_used = torch.cat([A_next, torch.zeros_like(model.A[:1])])
     EA = E @ A_used
     g = mf - (EA @ mf[..., None])[..., 0]
     L = _sym(Pf - EA @ Pf)

@@ -314,3 +314,13 @@ def test_smooth_command_robust_offline_and_fixed_lag_print_diagnostics(tmp_path,
         assert error[outliers].max() < 1.0
     assert main(["smooth", str(src), str(tmp_path / "never.csv"), "--preset", "paper", "--lag", "1"]) == 2
     assert not (tmp_path / "never.csv").exists()
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_tracks_of_one_to_three_frames(n):
+    t = np.arange(n) * 0.1
+    y = np.random.default_rng(n).normal(0, 1, (n, 3))
+    offline = RobustSmoother().smooth(t, y)
+    online = smooth_online(t, y, lag=1.0)
+    for track in (offline, online):
+        assert track.mean.shape == (n, 3) and np.all(np.isfinite(track.mean)) and np.all(np.isfinite(track.std))
