@@ -182,7 +182,7 @@ def accuracy(folder: Path, lags: tuple[float, ...] = LAGS) -> str:
         pooled = float(np.concatenate(list(errors.values())).mean())
         cells = [mode, *[f"{errors[d].mean():.3f}" for d in DRONES_V1], f"{pooled:.3f}"]
         if mode == "raw":
-            cells += ["-", "-", "-", "-", "-"]
+            cells += ["-", "-", "-", "-"]
         else:
             inside, preset_inside, raw_inside = [], [], []
             robust = mode == "robust" or mode.startswith("lag")
