@@ -1,10 +1,18 @@
-"""Speed and memory of the GP trajectory smoother's backends on long 10 Hz tracks.
+"""Accuracy, calibration and speed of the trajectory smoothers: real MMAUD V1 tracks and long simulated ones.
 
-Run ``python -m benchmarks.smoothing_bench``. Every case (backend x track length) runs in a fresh
-subprocess so its peak resident memory (``ru_maxrss``) is its own; the time is one call of
-``GPSmoother.smooth`` (mean and std of x, y, z at every observation time) after a warm-up, so imports
-and first-call set-up are excluded. The track is a simulated drone flight at 10 Hz with jittered stamps
-and 1 m noise per axis. Two references show what GPyTorch's own prediction machinery costs:
+``python -m benchmarks.smoothing_bench --accuracy`` scores every smoother on the five MMAUD V1 TAME tracks
+(``../shared/data/mmaud_v1_tame``): mean Euclidean error E per drone and pooled, for the raw predictions,
+the ``paper`` and ``tuned`` GPs and the ``robust`` Student-t smoother offline, causal (lag 0) and at fixed
+lags, with the 2-sigma coverage of the ground truth. The robust smoother's std calibration factor is
+chosen leave-one-drone-out (on the other four drones' ground truth, same mode) for the coverage of each
+drone; hyperparameters come from the predictions alone. ``--fit-preset`` re-learns the ``robust``
+preset. ``--speed-robust`` times the robust smoother offline on a 1-hour track and the causal update.
+
+``python -m benchmarks.smoothing_bench`` (no flag) measures the GP backends' speed and memory. Every case
+(backend x track length) runs in a fresh subprocess so its peak resident memory (``ru_maxrss``) is its
+own; the time is one call of ``GPSmoother.smooth`` (mean and std of x, y, z at every observation time)
+after a warm-up, so imports and first-call set-up are excluded. The track is a simulated drone flight at
+10 Hz with jittered stamps and 1 m noise per axis. Two references show what GPyTorch's own prediction machinery costs:
 ``gpytorch-exact`` is ``ExactGP`` prediction with exact (Cholesky) variances, and ``gpytorch-ski`` is
 KISS-GP (``GridInterpolationKernel``, grid spacing lengthscale / 10, CG tolerance 1e-4) computing the
 posterior **mean only**: its fast variances (LOVE) are not usable on long tracks.
@@ -67,16 +75,17 @@ def _gpytorch_model(
     y = torch.as_tensor((xyz - centre).T, dtype=torch.float64)
     batch = torch.Size([3])
     base = gpytorch.kernels.ScaleKernel(gpytorch.kernels.RBFKernel(batch_shape=batch), batch_shape=batch)
-    base.base_kernel.lengthscale = lengthscale
-    base.outputscale = outputscale
+    base = base.double()  # float64 before the values go in: GPyTorch's setters would round floats to float32
+    base.base_kernel.lengthscale = torch.tensor(lengthscale, dtype=torch.float64)
+    base.outputscale = torch.tensor(outputscale, dtype=torch.float64)
     kernel = base
     if ski:
         grid = int(np.ceil((rel.max() + 2 * lengthscale) / (lengthscale / 10))) + 1
         kernel = gpytorch.kernels.GridInterpolationKernel(
             base, grid_size=grid, num_dims=1, grid_bounds=[(-lengthscale, float(rel.max()) + lengthscale)]
         )
-    likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=batch)
-    likelihood.noise = noise
+    likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=batch).double()
+    likelihood.noise = torch.tensor(noise, dtype=torch.float64)
     model = Model(x, y, likelihood, kernel).double().eval()
     likelihood.double().eval()
     settings = gpytorch.settings
@@ -118,8 +127,153 @@ def run_case(track: Path, preset: str, backend: str, threads: int) -> dict[str, 
     return {"seconds": seconds, "peak_mb": peak / 1024, "baseline_mb": baseline / 1024}
 
 
+DRONES_V1 = ("Mavic2", "Mavic3", "Phantom4", "Avata", "M300")
+#: Fixed lags (s) scored by --accuracy besides offline.
+LAGS = (0.0, 0.5, 1.0)
+
+
+def _real_tracks(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    from zoo.smoothing import read_track_csv
+
+    tracks = {}
+    for drone in DRONES_V1:
+        t, pred = read_track_csv(folder / f"{drone}_pred.csv")
+        t_gt, gt = read_track_csv(folder / f"{drone}_gt.csv")
+        if not np.array_equal(t, t_gt):
+            raise ValueError(f"{folder}: {drone} prediction and ground-truth timestamps differ")
+        tracks[drone] = (t, pred, gt)
+    return tracks
+
+
+def _smoothed(mode: str, t: np.ndarray, pred: np.ndarray):
+    """(mean, std, weights or None) of one smoother mode, uncalibrated."""
+    from zoo.robust_smoothing import RobustSmoother, smooth_online
+    from zoo.smoothing import GPSmoother
+
+    if mode in ("paper", "tuned"):
+        track = GPSmoother(mode).smooth(t, pred)
+    elif mode == "robust":
+        track = RobustSmoother("robust", calibrate=False).smooth(t, pred)
+    else:
+        track = smooth_online(t, pred, "robust", lag=float(mode.split("=")[1]), calibrate=False)
+    return track.mean, track.std, track.weights
+
+
+def accuracy(folder: Path, lags: tuple[float, ...] = LAGS) -> str:
+    """The Markdown table of E and coverage per mode (see the module docstring)."""
+    from zoo.robust_smoothing import ROBUST_PRESETS, calibration_factor, coverage
+
+    tracks = _real_tracks(folder)
+    modes = ["raw", "paper", "tuned", "robust", *[f"lag={lag:g}" for lag in lags]]
+    header = ["mode", *DRONES_V1, "pooled E", "2-sigma coverage (LODO-calibrated)", "coverage, preset factor",
+              "uncalibrated", "down-weighted", "seconds"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    hp = ROBUST_PRESETS["robust"]
+    for mode in modes:
+        start = time.perf_counter()
+        results = {}
+        for drone, (t, pred, gt) in tracks.items():
+            if mode == "raw":
+                results[drone] = (pred, None, None, gt)
+            else:
+                results[drone] = (*_smoothed(mode, t, pred), gt)
+        seconds = time.perf_counter() - start
+        errors = {d: np.linalg.norm(r[0] - r[3], axis=1) for d, r in results.items()}
+        pooled = float(np.concatenate(list(errors.values())).mean())
+        cells = [mode, *[f"{errors[d].mean():.3f}" for d in DRONES_V1], f"{pooled:.3f}"]
+        if mode == "raw":
+            cells += ["-", "-", "-", "-"]
+        else:
+            inside, preset_inside, raw_inside = [], [], []
+            robust = mode == "robust" or mode.startswith("lag")
+            lag = float(mode.split("=")[1]) if mode.startswith("lag") else float("inf")
+            for drone, (mean, std, _, gt) in results.items():
+                others = [results[o] for o in DRONES_V1 if o != drone]
+                factor = calibration_factor(np.concatenate([o[0] for o in others]),
+                                            np.concatenate([o[1] for o in others]),
+                                            np.concatenate([o[3] for o in others]))
+                n = mean.size
+                inside.append(coverage(mean, factor * std, gt) * n)
+                scale = hp.scale_for(lag) if robust else 1.0
+                preset_inside.append(coverage(mean, scale * std, gt) * n)
+                raw_inside.append(coverage(mean, std, gt) * n)
+            total = sum(r[0].size for r in results.values())
+            weights = [r[2] for r in results.values() if r[2] is not None]
+            down = f"{np.mean(np.concatenate(weights) < 0.5):.1%}" if weights else "-"
+            cells += [f"{sum(inside) / total:.1%}", f"{sum(preset_inside) / total:.1%}" if robust else "-",
+                      f"{sum(raw_inside) / total:.1%}", down]
+        cells.append(f"{seconds:.1f}")
+        lines.append("| " + " | ".join(cells) + " |")
+        print(lines[-1], file=sys.stderr, flush=True)
+    return "\n".join(lines)
+
+
+def fit_preset(folder: Path, rounds: int = 40) -> str:
+    """Re-learn the ``robust`` preset from the five prediction tracks and its per-lag calibration factors.
+
+    EM starts from the shipped preset (a check that it is a fixed point of the fit); from ``tuned`` with
+    nu 3, ``fit_robust_hyperparameters(tracks, replace(tuned-as-robust, dof=3.0))``, it took 37 rounds.
+    """
+    from dataclasses import replace
+
+    from zoo.robust_smoothing import ROBUST_PRESETS, calibration_factor, fit_robust_hyperparameters
+
+    tracks = _real_tracks(folder)
+    report = fit_robust_hyperparameters([(t, pred) for t, pred, _ in tracks.values()], ROBUST_PRESETS["robust"],
+                                        rounds=rounds, m_iterations=6, compare_gaussian=True)
+    lines = [f"fitted (predictions only): {report.hyperparameters}",
+             f"ELBO {report.elbo:.1f} nats; Gaussian model, fitted alike: {report.gaussian_log_likelihood:.1f}; "
+             f"down-weighted {report.downweighted:.1%}; {report.rounds} rounds"]
+    factors = []
+    for lag in (*LAGS, float("inf")):
+        mode = "robust" if lag == float("inf") else f"lag={lag:g}"
+        parts = []
+        for t, pred, gt in tracks.values():
+            from zoo.robust_smoothing import RobustSmoother, smooth_online
+
+            hp = replace(report.hyperparameters, std_scale=())
+            track = (RobustSmoother(hp).smooth(t, pred) if mode == "robust"
+                     else smooth_online(t, pred, hp, lag=lag))
+            parts.append((track.mean, track.std, gt))
+        factors.append((lag, calibration_factor(*(np.concatenate([p[i] for p in parts]) for i in range(3)))))
+    lines.append(f"std_scale (all five drones' ground truth): {tuple((lag, round(f, 3)) for lag, f in factors)}")
+    return "\n".join(lines)
+
+
+def speed_robust(threads: int = 1, points: int = 36_000) -> str:
+    """Seconds to smooth a ``points`` track offline and ms per causal update (median over 2,000 frames)."""
+    import torch
+
+    from zoo.robust_smoothing import OnlineSmoother, RobustSmoother
+
+    torch.set_num_threads(threads)
+    t, xyz = make_track(points)
+    smoother = RobustSmoother("robust")
+    smoother.smooth(t[:200], xyz[:200])
+    start = time.perf_counter()
+    smoother.smooth(t, xyz)
+    offline = time.perf_counter() - start
+    lines = [f"robust offline, {points} points: {offline:.2f} s ({smoother.last_fit.iterations} iterations, "
+             f"{threads} torch thread(s))"]
+    for lag in LAGS:
+        online = OnlineSmoother("robust", lag=lag)
+        times = []
+        for i in range(2000):
+            start = time.perf_counter()
+            online.update(t[i], xyz[i])
+            times.append(time.perf_counter() - start)
+        lines.append(f"online lag {lag:g} s: median {np.median(times) * 1e3:.3f} ms, "
+                     f"95th percentile {np.quantile(times, 0.95) * 1e3:.3f} ms per frame")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--accuracy", action="store_true", help="E and coverage of every smoother on MMAUD V1")
+    parser.add_argument("--fit-preset", action="store_true", help="re-learn the robust preset (minutes)")
+    parser.add_argument("--speed-robust", action="store_true", help="time the robust smoother (1-hour track)")
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data"
+                        / "mmaud_v1_tame", help="folder of the MMAUD V1 TAME CSVs")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 36000])
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (2 cores here)")
     parser.add_argument("--exact-max", type=int, default=10000, help="largest track for the exact backends")
@@ -127,6 +281,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--case", nargs=4, metavar=("TRACK", "PRESET", "BACKEND", "THREADS"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.accuracy or args.fit_preset or args.speed_robust:
+        import torch
+
+        torch.set_num_threads(args.threads)
+        if args.fit_preset:
+            print(fit_preset(args.data))
+        if args.accuracy:
+            print(f"MMAUD V1 TAME tracks, {args.threads} torch thread(s)\n")
+            print(accuracy(args.data))
+        if args.speed_robust:
+            print(speed_robust(args.threads))
+        return 0
     if args.case:
         track, preset, backend, threads = args.case
         print(json.dumps(run_case(Path(track), preset, backend, int(threads))))

@@ -20,7 +20,7 @@ fails before anything trains. The keys (all paths relative to the working direct
     protocols: {by_sequence: {seed: 0, val: 0.2, test: 0.2}}
     lights: [ideal, dark]
     seeds: [0]
-    smoothing: true
+    smoothing: true                       # or a smoother preset name (paper, tuned, robust) to use it
     constant: [gt, pseudo]                # constant-position rows (mean training GT / pseudo-label)
     models:
       - {model: student, config: configs/model/student.yaml, protocols: [by_sequence],
@@ -244,7 +244,10 @@ def model_args(suite: Suite, entry: dict[str, Any], protocol: str, seed: int) ->
              "--data.test_lights", _cli_value(list(raw["lights"]))]
     args += _as_args("data.", data.get("init_args") or {})
     args += _as_args("trainer.", (raw.get("trainer") or {}).get("overrides") or {})
-    args += ["--model.smooth", _cli_value(bool(raw.get("smoothing", True)))]
+    smoothing = raw.get("smoothing", True)
+    args += ["--model.smooth", _cli_value(bool(smoothing))]
+    if isinstance(smoothing, str):  # a preset name: the model configs' own smoother is replaced
+        args += ["--model.smoother", _cli_value({"preset": smoothing})]
     args += _as_args("", entry.get("args") or {})
     args += ["--seed_everything", str(seed)]
     return args

@@ -155,8 +155,9 @@ def _make_kernel(kernel: str, batch: int) -> gpytorch.kernels.ScaleKernel:
 def _axis_kernel(hp: GPHyperparameters, axis: int) -> gpytorch.kernels.ScaleKernel:
     """An unbatched GPyTorch kernel with the hyperparameters of ``axis``."""
     kernel = _make_kernel(hp.kernel, 1)
-    kernel.base_kernel.lengthscale = hp.lengthscale[axis]
-    kernel.outputscale = hp.outputscale[axis]
+    # tensors in float64: GPyTorch's setters turn a Python float into a float32 tensor first
+    kernel.base_kernel.lengthscale = torch.tensor(hp.lengthscale[axis], dtype=_DTYPE)
+    kernel.outputscale = torch.tensor(hp.outputscale[axis], dtype=_DTYPE)
     return kernel
 
 
@@ -190,6 +191,8 @@ class SmoothedTrack:
         hyperparameters: what was used (the fitted values when fitting).
         backend: the backend that ran (``exact``, ``statespace`` or ``local``).
         horizon: the horizon in seconds that ``beyond_horizon`` refers to.
+        weights: (M,) robust weight E[w] of each observation (robust smoothers only; 1 is a typical
+            frame, near 0 an ignored outlier), or None.
     """
 
     timestamps: np.ndarray
@@ -199,6 +202,7 @@ class SmoothedTrack:
     hyperparameters: GPHyperparameters
     backend: str
     horizon: float
+    weights: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.timestamps.shape[0])
@@ -630,6 +634,25 @@ class GPSmoother:
         return SmoothedTrack(query.copy(), mean, std, beyond, hp, backend, float(horizon))
 
 
+#: The smoother preset used where none is asked for (the robust Student-t smoother, see zoo.robust_smoothing).
+DEFAULT_PRESET = "robust"
+
+
+def make_smoother(preset: str | None = None, **options: object):
+    """A smoother by preset name: ``paper`` / ``tuned`` make a :class:`GPSmoother`, ``robust`` (default) a
+    :class:`zoo.robust_smoothing.RobustSmoother`; ``options`` are that class's arguments. Both have
+    ``smooth(timestamps, xyz, query_times=None) -> SmoothedTrack``.
+    """
+    from zoo.robust_smoothing import ROBUST_PRESETS, RobustSmoother
+
+    name = DEFAULT_PRESET if preset is None else preset
+    if name in ROBUST_PRESETS:
+        return RobustSmoother(name, **options)  # type: ignore[arg-type]
+    if name not in PRESETS:
+        raise ValueError(f"unknown smoother preset {name!r}; expected one of {sorted({*PRESETS, *ROBUST_PRESETS})}")
+    return GPSmoother(name, **options)  # type: ignore[arg-type]
+
+
 def _distance_to_nearest(sorted_t: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Distance from each query to the nearest of the sorted times."""
     right = np.clip(np.searchsorted(sorted_t, q), 0, len(sorted_t) - 1)
@@ -649,7 +672,7 @@ def smooth_predictions(
         timestamps: (N,) seconds.
         xyz: (N, 3) predicted positions.
         sequence_ids: (N,) the sequence of each row.
-        **options: :class:`GPSmoother` arguments.
+        **options: :func:`make_smoother` arguments (``preset`` default ``robust``).
 
     Returns:
         ``{sequence_id: SmoothedTrack}``; the rows of each track are that sequence's rows in their input
@@ -660,7 +683,7 @@ def smooth_predictions(
     if ids.shape != t.shape:
         raise ValueError(f"expected one sequence id per timestamp ({t.shape[0]}), got shape {ids.shape}")
     positions = np.asarray(xyz, dtype=np.float64)
-    smoother = GPSmoother(**options)  # type: ignore[arg-type]
+    smoother = make_smoother(**options)  # type: ignore[arg-type]
     out: dict[Hashable, SmoothedTrack] = {}
     for sequence in dict.fromkeys(ids.tolist()):
         rows = np.flatnonzero(ids == sequence)
@@ -715,13 +738,13 @@ def smooth_track_file(src: Path, dst: Path, **options: object) -> SmoothedTrack:
     Args:
         src: ``timestamp,x,y,z`` CSV; extra columns are ignored.
         dst: output CSV ``timestamp,x,y,z,std_x,std_y,std_z``, one row per input row, in input order.
-        **options: :class:`GPSmoother` arguments (``preset``, ``backend``, ``fit``, ...).
+        **options: :func:`make_smoother` arguments (``preset``, default ``robust``, ``fit``, ...).
 
     Raises:
         TrackFileError: bad input; ``dst`` is then left untouched.
     """
     timestamps, xyz = read_track_csv(Path(src))
-    track = GPSmoother(**options).smooth(timestamps, xyz)  # type: ignore[arg-type]
+    track = make_smoother(**options).smooth(timestamps, xyz)  # type: ignore[arg-type]
     write_smoothed_csv(Path(dst), track)
     log.info("smoothed %d points of %s (%s backend) -> %s", len(track), src, track.backend, dst)
     return track

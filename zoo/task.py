@@ -51,8 +51,9 @@ class TrajectoryTask(L.LightningModule):
         alpha: weight of the pseudo-label term (1 = self-supervised, 0 = supervised).
         loss: 'mse' (squared error, the paper's equation) or 'l1' (the released code).
         lr, weight_decay, betas: Adam settings (the papers use lr 1e-4, betas (0.9, 0.999)).
-        smooth: smooth each test sequence's predictions with the GP smoother and report both.
-        smoother: keyword arguments of :class:`zoo.smoothing.GPSmoother`.
+        smooth: smooth each test sequence's predictions and report both.
+        smoother: keyword arguments of :func:`zoo.smoothing.make_smoother`: ``preset`` (default ``robust``,
+            the Student-t state-space smoother; ``paper`` the paper's GP) and that smoother's options.
         predictions_dir: write per-sequence prediction CSVs there at test/predict time.
         predictions_topic: also store each sequence's predictions in its MCAP recording under this
             topic (e.g. ``/prediction/student``) at predict time.
@@ -311,9 +312,9 @@ class TrajectoryTask(L.LightningModule):
         return result
 
     def _log_smoothed(self) -> None:
-        from zoo.smoothing import GPSmoother
+        from zoo.smoothing import make_smoother
 
-        smoother = GPSmoother(**(self.hparams.smoother or {}))
+        smoother = make_smoother(**(self.hparams.smoother or {}))
         for dataloader_idx in sorted(self._predictions):
             metric = TrajectoryError().to(self.device)
             kept = self.smoothed_predictions.setdefault(dataloader_idx, {})

@@ -95,7 +95,7 @@ def test_shipped_suites_expand_and_parse(path):
 
 
 def test_the_demo_suite_covers_the_comparison():
-    from zoo.registry import list_models
+    from zoo.registry import list_models, model_class
 
     suite = load_suite(REPO / "configs" / "benchmark" / "quick.yaml")
     jobs = expand_jobs(suite)
@@ -150,7 +150,7 @@ def test_the_slurm_launcher_takes_the_suites_options(tmp_path):
 def test_the_demo_suite_runs_end_to_end_to_the_leaderboard(tmp_path, monkeypatch):
     """`make demo` in a temporary folder: about 12 minutes on 2 cores."""
     from benchmarks.leaderboard import render_leaderboard
-    from zoo.registry import list_models
+    from zoo.registry import list_models, model_class
     from zoo.weights import list_weights, load_pretrained
 
     monkeypatch.setenv("AAUTE_CACHE", str(tmp_path / "home_cache"))  # the weights registry of this run
@@ -166,6 +166,17 @@ def test_the_demo_suite_runs_end_to_end_to_the_leaderboard(tmp_path, monkeypatch
     assert set(rows.loc[rows["kind"] != "profile", "protocol"]) == {"by_sequence", "random_windows"}
     report = render_leaderboard(suite.results_path, tmp_path / "leaderboard")
     assert "Constant (mean train GT)" in report.markdown and (tmp_path / "leaderboard" / "leaderboard.html").is_file()
-    assert {f"{model}.sim_quick" for model in list_models()} | {"student.sim_quick_random_windows"} <= set(
-        list_weights())
+    learned = {model for model in list_models() if model_class(model).category != "non-learned"}
+    assert {f"{model}.sim_quick" for model in learned} | {"student.sim_quick_random_windows"} <= set(list_weights())
     assert not load_pretrained("student", weights="sim_quick").training
+
+
+def test_the_paper_suite_smooths_with_the_papers_gp_and_the_others_with_the_default():
+    import json
+
+    paper = [j for j in expand_jobs(load_suite(REPO / "configs" / "benchmark" / "paper.yaml")) if j.kind == "model"]
+    for job in paper:
+        at = job.cli_args.index("--model.smoother")
+        assert json.loads(job.cli_args[at + 1]) == {"preset": "paper"}
+    quick = [j for j in expand_jobs(load_suite(REPO / "configs" / "benchmark" / "quick.yaml")) if j.kind == "model"]
+    assert quick and all("--model.smoother" not in j.cli_args for j in quick)  # the model configs' robust preset

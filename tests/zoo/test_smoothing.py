@@ -374,3 +374,14 @@ def test_the_tuned_preset_is_the_pooled_marginal_likelihood_fit(tame):
     np.testing.assert_allclose(fitted.lengthscale, tuned.lengthscale, rtol=0.1)
     np.testing.assert_allclose(fitted.noise, tuned.noise, rtol=0.1)
     np.testing.assert_allclose(fitted.outputscale, tuned.outputscale, rtol=0.3)  # flat likelihood along it
+
+
+def test_kernel_hyperparameters_are_set_in_float64_without_a_float32_round_trip():
+    from zoo.smoothing import _axis_kernel
+
+    hp = GPHyperparameters("matern52", (0.1, 8.2, 13.0), (0.3, 26.0, 23.0), (0.7, 0.69, 0.95))
+    kernel = _axis_kernel(hp, 0)
+    assert kernel.base_kernel.lengthscale.dtype == torch.float64
+    # float32 on the way would be off by 1.5e-8 relative (0.10000000149); softplus round trips cost an ulp
+    assert kernel.base_kernel.lengthscale.item() == pytest.approx(0.1, rel=1e-14)
+    assert kernel.outputscale.item() == pytest.approx(0.3, rel=1e-14)

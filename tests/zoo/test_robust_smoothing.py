@@ -1,0 +1,326 @@
+"""The robust Student-t state-space smoother: exactness, outliers, causality, fitting, coverage, GPyTorch."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from zoo.robust_smoothing import (
+    ROBUST_PRESETS,
+    OnlineSmoother,
+    RobustHyperparameters,
+    RobustSmoother,
+    _Batch,
+    _infer,
+    _posterior,
+    calibration_factor,
+    coverage,
+    fit_robust_hyperparameters,
+    smooth_online,
+)
+from zoo.smoothing import PRESETS, GPSmoother, _statespace_posterior, make_smoother
+
+HP = RobustHyperparameters(lengthscale=(3.0, 4.0, 5.0), outputscale=(4.0, 9.0, 6.0), noise=(0.04, 0.09, 0.06), dof=3.0)
+
+
+def smooth_truth(t: np.ndarray) -> np.ndarray:
+    return np.stack([2 * np.sin(0.4 * t), 3 * np.cos(0.25 * t), 1.5 * np.sin(0.3 * t + 1)], axis=1)
+
+
+def track_with_outliers(n: int = 300, seed: int = 0, noise: float = 0.25):
+    """A smooth 10 Hz flight with Gaussian noise and every 23rd frame 8 m off in one direction."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.1 + rng.uniform(-0.01, 0.01, n) + 1.69e9
+    truth = smooth_truth(t - t[0])
+    y = truth + rng.normal(0, noise, truth.shape)
+    outliers = np.arange(11, n, 23)
+    y[outliers] += np.array([0.0, 8.0, -6.0])
+    return t, y, truth, outliers
+
+
+def test_gaussian_weights_reproduce_the_exact_matern_state_space_smoother_and_tracks_restart():
+    rng = np.random.default_rng(1)
+    n = 257  # odd, not a power of two: every branch of the scan
+    t = np.cumsum(rng.uniform(0.05, 0.2, n))
+    y = rng.normal(0, 1, (n, 3))
+    hp = PRESETS["tuned"]
+    mean, var = _statespace_posterior(hp, t - t[0], y, t - t[0])
+    robust = RobustHyperparameters(hp.lengthscale, hp.outputscale, hp.noise, dof=5.0)
+    two = _Batch(np.concatenate([t - t[0], t - t[0] + t[-1] + 3]), np.concatenate([y, y[::-1]]),
+                 np.ones(2 * n, dtype=bool), np.r_[True, np.zeros(n - 1, bool), True, np.zeros(n - 1, bool)])
+    with torch.no_grad():
+        m2, v2, _ = _posterior(two, robust, np.ones(2 * n))
+    np.testing.assert_allclose(m2[:n].numpy(), mean, atol=1e-9)
+    np.testing.assert_allclose(v2[:n].numpy(), var, atol=1e-9)
+    mean_r, var_r = _statespace_posterior(hp, t - t[0], y[::-1], t - t[0])  # the second track alone
+    np.testing.assert_allclose(m2[n:].numpy(), mean_r, atol=1e-9)
+    np.testing.assert_allclose(v2[n:].numpy(), var_r, atol=1e-9)
+
+
+def test_robust_smoother_ignores_outliers_and_the_gaussian_one_does_not():
+    t, y, truth, outliers = track_with_outliers()
+    robust = RobustSmoother(HP).smooth(t, y)
+    gaussian = GPSmoother(None, kernel="matern52", lengthscale=HP.lengthscale, outputscale=HP.outputscale,
+                          noise=HP.noise).smooth(t, y)
+    err_r = np.linalg.norm(robust.mean - truth, axis=1)
+    err_g = np.linalg.norm(gaussian.mean - truth, axis=1)
+    assert err_r[outliers].max() < 0.4  # the 10 m frames leave no mark
+    assert err_g[outliers].mean() > 3 * err_r[outliers].mean()
+    assert err_r.mean() < 0.6 * err_g.mean()
+    assert robust.weights[outliers].max() < 0.1  # one weight per frame, shared by the axes
+    inliers = np.setdiff1d(np.arange(len(t)), outliers)
+    assert np.median(robust.weights[inliers]) > 0.8
+
+
+def test_query_times_order_and_absolute_time_do_not_change_the_result():
+    t, y, _, _ = track_with_outliers(120)
+    base = RobustSmoother(HP).smooth(t, y)
+    perm = np.random.default_rng(3).permutation(len(t))
+    shuffled = RobustSmoother(HP).smooth(t[perm] - 1.69e9, y[perm])
+    np.testing.assert_allclose(shuffled.mean, base.mean[perm], atol=1e-8)
+    between = 0.5 * (t[:-1] + t[1:])
+    queried = RobustSmoother(HP).smooth(t, y, between)
+    assert queried.mean.shape == (len(between), 3) and np.all(np.isfinite(queried.std))
+    # a query midway between two frames lies between their smoothed values on a smooth track
+    assert np.abs(queried.mean - 0.5 * (base.mean[:-1] + base.mean[1:])).max() < 0.05
+
+
+def test_the_calibration_factor_scales_the_reported_std():
+    t, y, _, _ = track_with_outliers(100)
+    plain = RobustSmoother(HP).smooth(t, y)
+    scaled = RobustSmoother(replace_scale(HP, ((0.0, 3.0), (np.inf, 2.0)))).smooth(t, y)
+    np.testing.assert_allclose(scaled.std, 2.0 * plain.std)
+    np.testing.assert_allclose(scaled.mean, plain.mean)
+    assert replace_scale(HP, ((0.0, 3.0), (1.0, 2.0), (np.inf, 1.5))).scale_for(0.5) == pytest.approx(2.5)
+
+
+def replace_scale(hp: RobustHyperparameters, pairs) -> RobustHyperparameters:
+    from dataclasses import replace
+
+    return replace(hp, std_scale=pairs)
+
+
+# ---------------------------------------------------------------------------------- causal and fixed lag
+
+
+@pytest.mark.parametrize("lag", [0.0, 0.5])
+def test_online_outputs_never_use_frames_beyond_their_lag(lag):
+    t, y, _, _ = track_with_outliers(80, seed=4)
+    cut = 50
+    base = smooth_online(t, y, HP, lag=lag)
+    perturbed = y.copy()
+    perturbed[cut:] += np.random.default_rng(5).normal(0, 5, perturbed[cut:].shape)
+    other = smooth_online(t, perturbed, HP, lag=lag)
+    np.testing.assert_array_equal(base.timestamps, t)
+    allowed = t + lag < t[cut]  # rows whose time plus the lag lies before the first changed frame
+    np.testing.assert_array_equal(other.mean[allowed], base.mean[allowed])
+    np.testing.assert_array_equal(other.std[allowed], base.std[allowed])
+    assert not np.allclose(other.mean[cut:], base.mean[cut:])
+
+
+def test_fixed_lag_uses_the_future_within_its_lag():
+    t, y, truth, _ = track_with_outliers(200, seed=6, noise=0.4)
+    causal = smooth_online(t, y, HP, lag=0.0)
+    lagged = smooth_online(t, y, HP, lag=1.0)
+    offline = RobustSmoother(HP).smooth(t, y)
+    errors = [np.linalg.norm(s.mean - truth, axis=1).mean() for s in (causal, lagged, offline)]
+    assert errors[0] > errors[1] > 0.9 * errors[2]
+    row = 100  # a frame inside the lag changes the row, one just beyond it does not
+    inside, beyond = y.copy(), y.copy()
+    inside[row + 5] += 1.0
+    beyond[np.flatnonzero(t > t[row] + 1.0)[0]] += 1.0
+    assert not np.allclose(smooth_online(t, inside, HP, lag=1.0).mean[row], lagged.mean[row])
+    np.testing.assert_array_equal(smooth_online(t, beyond, HP, lag=1.0).mean[row], lagged.mean[row])
+
+
+def test_the_online_smoother_emits_each_frame_once_in_order_and_flush_finishes():
+    t, y, _, _ = track_with_outliers(40, seed=7)
+    online = OnlineSmoother(HP, lag=0.35)
+    emitted = []
+    for i in range(len(t)):
+        rows = online.update(t[i], y[i])
+        assert all(r.timestamp + 0.35 <= t[i] for r in rows)  # its lag has passed when a row comes out
+        emitted += rows
+    emitted += online.flush()
+    assert [r.timestamp for r in emitted] == list(t)
+    batch = smooth_online(t, y, HP, lag=0.35)
+    np.testing.assert_array_equal(np.stack([r.mean for r in emitted]), batch.mean)
+    with pytest.raises(ValueError, match="not after"):
+        online.update(t[-1], y[-1])
+    with pytest.raises(ValueError, match="finite"):
+        online.update(t[-1] + 1, [np.nan, 0, 0])
+
+
+def test_causal_mode_emits_at_once_with_bounded_window():
+    t, y, _, _ = track_with_outliers(60, seed=8)
+    online = OnlineSmoother(HP, lag=0.0)
+    for i in range(len(t)):
+        rows = online.update(t[i], y[i])
+        assert [r.timestamp for r in rows] == [t[i]]
+        assert len(online._frames) == 1  # nothing of the past is re-solved
+    lagged = OnlineSmoother(HP, lag=0.5)
+    for i in range(len(t)):
+        lagged.update(t[i], y[i])
+        assert len(lagged._frames) <= 8
+    revised = OnlineSmoother(HP, lag=0.0, window=1.0)  # past weights revised, emitted rows final
+    rows = [row for i in range(len(t)) for row in revised.update(t[i], y[i])]
+    assert [r.timestamp for r in rows] == list(t) and len(revised._frames) <= 12
+
+
+# ------------------------------------------------------------------------------------------- fitting
+
+
+def test_fitted_degrees_of_freedom_separate_gaussian_from_heavy_tailed_noise():
+    rng = np.random.default_rng(9)
+    t = np.arange(200) * 0.1
+    truth = smooth_truth(t)
+    gaussian = truth + rng.normal(0, 0.3, truth.shape)
+    # a Student-t with 1.5 degrees of freedom, one scale per frame shared by the axes
+    heavy = truth + 0.3 * rng.normal(0, 1, truth.shape) / np.sqrt(rng.gamma(0.75, 1 / 0.75, (len(t), 1)))
+    start = RobustHyperparameters((3.0, 3.0, 3.0), (5.0, 5.0, 5.0), (0.1, 0.1, 0.1), dof=5.0)
+    fit_g = fit_robust_hyperparameters([(t, gaussian)], start, rounds=5, m_iterations=3)
+    fit_h = fit_robust_hyperparameters([(t, heavy)], start, rounds=5, m_iterations=3)
+    assert fit_g.hyperparameters.dof > 20
+    assert fit_h.hyperparameters.dof < 4
+    assert fit_h.downweighted > 0.1 > fit_g.downweighted
+    np.testing.assert_allclose(fit_g.hyperparameters.noise, 0.09, rtol=0.35)
+
+
+def test_the_bound_increases_over_variational_iterations():
+    t, y, _, _ = track_with_outliers(150, seed=10)
+    batch = _Batch(t - t[0], y - y.mean(0), np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
+    bounds = [_infer(batch, HP, max_iterations=k, tolerance=0.0).elbo for k in (1, 2, 4, 8)]
+    assert all(b2 >= b1 - 1e-6 for b1, b2 in zip(bounds, bounds[1:], strict=False))
+
+
+# ------------------------------------------------------------------------------------------- coverage
+
+
+def test_coverage_and_calibration_factor():
+    rng = np.random.default_rng(11)
+    truth = rng.normal(0, 1, (20000, 3))
+    mean = np.zeros_like(truth)
+    std = np.full_like(truth, 0.5)  # twice too confident
+    assert coverage(mean, std, truth) == pytest.approx(0.683, abs=0.01)
+    assert coverage(mean, 2 * std, truth) == pytest.approx(0.954, abs=0.01)
+    assert calibration_factor(mean, std, truth) == pytest.approx(1.96, abs=0.05)
+    mean[0] = np.nan
+    assert 0.6 < coverage(mean, std, truth) < 0.7
+    with pytest.raises(ValueError, match="one shape"):
+        coverage(mean, std[:5], truth)
+
+
+# --------------------------------------------------------------------------------- defaults and GPyTorch
+
+
+def test_make_smoother_defaults_to_robust_and_keeps_the_paper_gp_by_name():
+    assert isinstance(make_smoother(), RobustSmoother)
+    assert isinstance(make_smoother("paper"), GPSmoother)
+    assert make_smoother("paper").hyperparameters == PRESETS["paper"]
+    assert make_smoother("robust").hyperparameters == ROBUST_PRESETS["robust"]
+    with pytest.raises(ValueError, match="unknown smoother preset"):
+        make_smoother("nope")
+
+
+@pytest.mark.slow
+def test_agrees_with_gpytorch_student_t_variational_gp_on_a_short_track():
+    """One axis, hyperparameters fixed: our mean-field scale mixture against GPyTorch's StudentTLikelihood
+    with a full-rank variational GP (inducing points at the data). Different approximations of the
+    same posterior: the means agree to a small fraction of the noise and both ignore the outliers."""
+    import gpytorch
+
+    rng = np.random.default_rng(12)
+    n = 60
+    t = np.arange(n) * 0.1
+    truth = 2 * np.sin(0.8 * t)
+    y = truth + rng.normal(0, 0.2, n)
+    y[[15, 40]] += 6.0
+    lengthscale, outputscale, noise, dof = 2.0, 4.0, 0.04, 4.0
+    hp = RobustHyperparameters(lengthscale, outputscale, noise, dof)
+    batch = _Batch(t, y[:, None], np.ones(n, bool), np.r_[True, np.zeros(n - 1, bool)])
+    ours = _infer(batch, hp, axes=(np.array([lengthscale]), np.array([outputscale]), np.array([noise])),
+                  max_iterations=200, tolerance=1e-8)
+
+    torch.manual_seed(0)
+    x = torch.as_tensor(t, dtype=torch.float64)[:, None]
+
+    class Model(gpytorch.models.ApproximateGP):
+        def __init__(self):
+            distribution = gpytorch.variational.CholeskyVariationalDistribution(n)
+            strategy = gpytorch.variational.VariationalStrategy(self, x, distribution,
+                                                                 learn_inducing_locations=False)
+            super().__init__(strategy)
+            self.covar = gpytorch.kernels.ScaleKernel(gpytorch.kernels.MaternKernel(nu=2.5))
+
+        def forward(self, inputs):
+            return gpytorch.distributions.MultivariateNormal(torch.zeros(inputs.shape[0], dtype=inputs.dtype),
+                                                             self.covar(inputs))
+
+    model = Model().double()
+    model.covar.base_kernel.lengthscale = torch.tensor(lengthscale, dtype=torch.float64)
+    model.covar.outputscale = torch.tensor(outputscale, dtype=torch.float64)
+    likelihood = gpytorch.likelihoods.StudentTLikelihood().double()
+    likelihood.noise = torch.tensor(noise, dtype=torch.float64)
+    likelihood.deg_free = torch.tensor(dof, dtype=torch.float64)
+    variational = list(model.variational_strategy._variational_distribution.parameters())
+    optimizer = torch.optim.Adam(variational, lr=0.1)
+    objective = gpytorch.mlls.VariationalELBO(likelihood, model, num_data=n)
+    target = torch.as_tensor(y, dtype=torch.float64)
+    model.train()
+    with gpytorch.settings.num_likelihood_samples(32):
+        for _ in range(300):
+            optimizer.zero_grad()
+            loss = -objective(model(x), target)
+            loss.backward()
+            optimizer.step()
+    model.eval()
+    with torch.no_grad():
+        theirs = model(x).mean.numpy()
+    gaussian = GPSmoother(None, kernel="matern52", lengthscale=lengthscale, outputscale=outputscale,
+                          noise=noise).smooth(t, np.stack([y, y, y], 1)).mean[:, 0]
+    ours_mean = ours.mean[:, 0]
+    assert np.abs(ours_mean - theirs).max() < 0.1  # noise std 0.2, outliers 6
+    assert np.abs(ours_mean - truth)[[15, 40]].max() < 0.3
+    assert np.abs(gaussian - truth)[[15, 40]].min() > 0.5  # the Gaussian GP is dragged by both
+
+
+# ------------------------------------------------------------------------------------------------ CLI
+
+
+def write_track(path, t, y):
+    import pandas as pd
+
+    pd.DataFrame({"timestamp": t, "x": y[:, 0], "y": y[:, 1], "z": y[:, 2]}).to_csv(path, index=False)
+
+
+def test_smooth_command_robust_offline_and_fixed_lag_print_diagnostics(tmp_path, capsys):
+    import pandas as pd
+
+    from zoo.cli import main
+
+    t, y, truth, outliers = track_with_outliers(150, seed=13)
+    src = tmp_path / "track.csv"
+    write_track(src, t, y)
+    assert main(["smooth", str(src), str(tmp_path / "off.csv")]) == 0  # robust is the default
+    offline = capsys.readouterr().out
+    assert "robust smoother (offline): degrees of freedom 1.24" in offline and "down-weighted" in offline
+    assert main(["smooth", str(src), str(tmp_path / "lag.csv"), "--preset", "robust", "--lag", "1"]) == 0
+    assert "lag 1 s" in capsys.readouterr().out
+    for name in ("off.csv", "lag.csv"):
+        out = pd.read_csv(tmp_path / name)
+        assert list(out.columns) == ["timestamp", "x", "y", "z", "std_x", "std_y", "std_z"] and len(out) == len(t)
+        error = np.linalg.norm(out[["x", "y", "z"]].to_numpy() - truth, axis=1)
+        assert error[outliers].max() < 1.0
+    assert main(["smooth", str(src), str(tmp_path / "never.csv"), "--preset", "paper", "--lag", "1"]) == 2
+    assert not (tmp_path / "never.csv").exists()
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_tracks_of_one_to_three_frames(n):
+    t = np.arange(n) * 0.1
+    y = np.random.default_rng(n).normal(0, 1, (n, 3))
+    offline = RobustSmoother().smooth(t, y)
+    online = smooth_online(t, y, lag=1.0)
+    for track in (offline, online):
+        assert track.mean.shape == (n, 3) and np.all(np.isfinite(track.mean)) and np.all(np.isfinite(track.std))
