@@ -80,7 +80,15 @@ from torch.utils.flop_counter import FlopCounterMode, flop_registry
 
 from benchmarks.results import PROFILE
 from datamodules.atomic import atomic_write
-from datamodules.features import image_features, image_recipe, mel_features, mel_recipe, scale_image
+from datamodules.features import (
+    image_features,
+    image_recipe,
+    mel_features,
+    mel_recipe,
+    phase_features,
+    phase_recipe,
+    scale_image,
+)
 from zoo.registry import get_model, list_models, model_class
 
 log = logging.getLogger(__name__)
@@ -318,14 +326,14 @@ def raw_inputs(net: nn.Module, seed: int = 0) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     raw: dict[str, np.ndarray] = {}
     for name in net.inputs:
-        if name == "audio_mel":
+        if name in ("audio_mel", "audio_phase"):
             samples = int(round(WINDOW_SECONDS * sample_rate))
             raw[name] = (0.1 * rng.standard_normal((net.in_channels, samples))).astype(np.float32)
         elif name == "image":
             raw[name] = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
         else:
             raise ValueError(f"{net.model_name}: no raw input is known for input {name!r} (recipe "
-                             f"{net.inputs[name]!r}); expected 'audio_mel' or 'image'")
+                             f"{net.inputs[name]!r}); expected 'audio_mel', 'audio_phase' or 'image'")
     return raw
 
 
@@ -336,6 +344,8 @@ def frontend(net: nn.Module, raw: Mapping[str, np.ndarray]) -> dict[str, torch.T
     for name, recipe in net.inputs.items():
         if name == "audio_mel":
             features[name] = mel_features(raw[name], sample_rate, mel_recipe(recipe))
+        elif name == "audio_phase":
+            features[name] = phase_features(raw[name], sample_rate, phase_recipe(recipe))
         else:
             features[name] = scale_image(image_features(raw[name], image_recipe(recipe)))
     return features

@@ -95,7 +95,7 @@ def test_shipped_suites_expand_and_parse(path):
 
 
 def test_the_demo_suite_covers_the_comparison():
-    from zoo.registry import list_models, model_class
+    from zoo.registry import list_models
 
     suite = load_suite(REPO / "configs" / "benchmark" / "quick.yaml")
     jobs = expand_jobs(suite)
