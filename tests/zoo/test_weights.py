@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import logging
 from pathlib import Path
 
 import pytest
@@ -131,11 +130,11 @@ def test_a_project_checkpoint_loads_into_the_task_and_into_the_bare_net(checkpoi
 
 
 def test_test_refuses_a_checkpoint_of_another_net_and_runs_it_when_asked(checkpoints, labelled_dir, feature_cache,
-                                                                          tmp_path, caplog):
+                                                                          tmp_path, capsys):
     common = _common("student", labelled_dir, feature_cache, tmp_path)
-    with caplog.at_level(logging.ERROR):
-        assert main(["test", *common, "--ckpt_path", str(checkpoints["audionet"])]) == 2
-    message = caplog.records[-1].getMessage()
+    capsys.readouterr()
+    assert main(["test", *common, "--ckpt_path", str(checkpoints["audionet"])]) == 2
+    message = capsys.readouterr().err.strip().splitlines()[-1]  # the one-line error
     assert "holds a 'audionet' net but the configured model is 'student'" in message
     assert "--use_checkpoint_model true" in message
     out = tmp_path / "own_model"

@@ -119,9 +119,6 @@ class SRPPhat(TrajectoryNet):
         self._coarse.clear()
         self._thresholds.clear()
 
-    def reduced_settings(self) -> dict[str, str]:
-        return {}
-
     def _check_region(self, mics: torch.Tensor) -> None:
         centre = mics.mean(dim=0)
         outside = (centre < self.region[:, 0] - 5.0) | (centre > self.region[:, 1] + 5.0)
