@@ -10,6 +10,14 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.fixture(scope="session", autouse=True)
+def private_cache(tmp_path_factory):
+    """``$AAUTE_CACHE`` inside the test session's temporary folder: no test writes the user's weights registry."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("AAUTE_CACHE", str(tmp_path_factory.mktemp("aaute_cache")))
+        yield
+
+
 def shared_data_dir() -> Path:
     """Where the real MMAUD samples live: ``$AAUTE_SHARED_DATA`` or ``<repo>/../shared/data``."""
     return Path(os.environ.get("AAUTE_SHARED_DATA", REPO.parent / "shared" / "data"))
