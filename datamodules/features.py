@@ -289,6 +289,12 @@ def mic_pairs(channels: int) -> tuple[tuple[int, int], ...]:
     return tuple((i, j) for i in range(channels) for j in range(i + 1, channels))
 
 
+def pair_indices(channels: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first and second microphone of every pair of :func:`mic_pairs`, as index tensors."""
+    pairs = mic_pairs(channels)
+    return torch.tensor([i for i, _ in pairs]), torch.tensor([j for _, j in pairs])
+
+
 class GccPhat:
     """The phase recipe at one sample rate: frames -> cross-spectra -> PHAT -> correlation at the lags."""
 
@@ -307,9 +313,7 @@ class GccPhat:
         self.bins = torch.from_numpy(np.flatnonzero(keep))
         # a coherent pure delay sums to 2 K / n_out at its lag: scale it to 1
         self.scale = self.n_out / (2.0 * max(int(keep.sum()), 1))
-        pairs = mic_pairs(channels)
-        self.first = torch.tensor([i for i, _ in pairs])
-        self.second = torch.tensor([j for _, j in pairs])
+        self.first, self.second = pair_indices(channels)
         self.window = torch.hann_window(self.frame, periodic=False, dtype=torch.float64)
 
     def cross_spectra(self, frames: torch.Tensor) -> torch.Tensor:

@@ -34,7 +34,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from datamodules.features import GccPhat, mic_pairs, phase_recipe, split_frames
+from datamodules.features import GccPhat, mic_pairs, pair_indices, phase_recipe, split_frames
 from datamodules.simulate.microphones import mic_geometry
 from zoo.nets.base import TrajectoryNet
 from zoo.registry import register_model
@@ -132,9 +132,7 @@ class SRPPhat(TrajectoryNet):
     def _pair_geometry(self, points: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """For ``points`` (... x 3): each pair's fractional lag column and the norm of the gradient of
         its path difference (``|u_i - u_j|`` for unit vectors from the mics, 0..2), both ... x pairs."""
-        pairs = mic_pairs(mics.shape[0])
-        first = torch.tensor([i for i, _ in pairs])
-        second = torch.tensor([j for _, j in pairs])
+        first, second = pair_indices(mics.shape[0])
         mics = mics.to(points.dtype)
         flat = points.reshape(-1, 3)
         cross = flat @ mics.T  # M x C
@@ -147,7 +145,7 @@ class SRPPhat(TrajectoryNet):
         dot = squared - cross[:, first] - cross[:, second] + (mics[first] * mics[second]).sum(dim=1)
         cosine = dot / (distance[:, first] * distance[:, second])
         gradient = (2 - 2 * cosine).clamp_min(0).sqrt()
-        shape = (*points.shape[:-1], len(pairs))
+        shape = (*points.shape[:-1], len(first))
         return position.reshape(shape), gradient.reshape(shape)
 
     def _coarse_grid(self, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -282,9 +280,7 @@ class SRPPhat(TrajectoryNet):
         shift = torch.where(curvature < 0, 0.5 * (y0 - y2) / curvature.clamp(max=-1e-9), torch.zeros_like(y1))
         measured = centre.to(frames.dtype) + shift.clamp(-0.5, 0.5)
         weight = y1.clamp_min(0.0) + 1e-3
-        pair_index = mic_pairs(mics.shape[0])
-        first = torch.tensor([i for i, _ in pair_index])
-        second = torch.tensor([j for _, j in pair_index])
+        first, second = pair_indices(mics.shape[0])
         scale = self.recipe.lag_rate / self.speed_of_sound
         m = mics.to(points.dtype)
         for _ in range(FIT_STEPS):
