@@ -2,7 +2,7 @@
 
 - ``model``: builds the job's LightningCLI (the same configs and code path as ``aaute fit`` /
   ``aaute test``), fits, tests the checkpoint with the lowest ``val_loss`` under every light
-  condition, and writes the per-window test predictions (raw and GP-smoothed) beside its checkpoints;
+  condition, and writes the per-window test predictions (raw and smoothed) beside its checkpoints;
 - ``constant``: the constant-position predictor, the mean training target (ground truth or
   pseudo-label) of the same split, scored on the same test windows;
 - ``profile``: :func:`benchmarks.profiler.profile_model` at the model's reference shapes.
@@ -157,6 +157,7 @@ def _write_predictions(path: Path, frame: pd.DataFrame) -> str:
 
 def _train_and_test(job: JobSpec) -> dict[str, Any]:
     from zoo.cli import lightning_cli
+    from zoo.smoothing import DEFAULT_PRESET
 
     job_dir = Path(job.job_dir)
     args = [*job.cli_args, "--trainer.default_root_dir", str(job_dir), "--trainer.enable_progress_bar", "false",
@@ -182,7 +183,9 @@ def _train_and_test(job: JobSpec) -> dict[str, Any]:
     row: dict[str, Any] = {"alpha": task.hparams.alpha, "max_epochs": trainer.max_epochs,
                            "limit_train_batches": None if limit == 1.0 else limit, "epochs_run": epochs_run,
                            "batch_size": datamodule.hparams.batch_size, "checkpoint_path": best or ckpt_path or "",
-                           "budget_note": "; ".join(notes)}
+                           "budget_note": "; ".join(notes),
+                           "smoother": ((task.hparams.smoother or {}).get("preset") or DEFAULT_PRESET
+                                        if task.hparams.smooth else "")}
     if best:
         import torch
 

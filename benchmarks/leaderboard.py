@@ -4,8 +4,9 @@ Every number in the tables comes from ``results.csv`` (read by :func:`benchmarks
 the newest row of each job); plots may also read the per-window prediction files the rows point to.
 Layout (like Table I of the AAUTE paper): one row per method with its category, Dx Dy Dz E under
 ideal light and under darkness, mean E, GMACs, parameters, latency and, where smoothing ran, the
-GP-smoothed E; mean ± sample standard deviation over seeds; best value per column in bold, second
-underlined (lower is better everywhere; the constant-position row is shown but never ranked).
+smoothed E (the caption names each method's smoother); mean ± sample standard deviation over seeds;
+best value per column in bold, second underlined (lower is better everywhere; the constant-position row
+is shown but never ranked).
 One table per suite x protocol x data fingerprint, never mixed; the ``random_windows`` protocol is
 labelled leaky. Outputs: ``leaderboard.md``, ``leaderboard.csv``, ``leaderboard.tex`` (booktabs),
 one self-contained ``leaderboard.html`` and the PNG plots in ``plots/``.
@@ -280,7 +281,7 @@ def _main_columns(stats: pd.DataFrame) -> list[Column]:
     columns += [Column("E_avg", "mean E"), Column("gmacs", "GMACs", digits=None, aggregated=False),
                 Column("params_total_M", "params (M)", digits=None, aggregated=False),
                 Column("latency_ms_1t", "latency (ms)", digits=None, aggregated=False)]
-    smoothed = [Column(f"E_smooth_{light}", LIGHT_TITLES[light], "GP-smoothed E", flat=f"smoothed E {light}")
+    smoothed = [Column(f"E_smooth_{light}", LIGHT_TITLES[light], "smoothed E", flat=f"smoothed E {light}")
                 for light in LIGHTS]
     return columns + _present(stats, smoothed)  # only where smoothing ran
 
@@ -312,6 +313,22 @@ def _split_counts(rows: pd.DataFrame, what: str) -> str:
     return "; ".join(dict.fromkeys(combos))
 
 
+SMOOTHER_NAMES = {"robust": "the robust Student-t state-space smoother (preset robust)",
+                  "paper": "the paper's GP smoother (preset paper)", "tuned": "the tuned Matérn GP (preset tuned)"}
+
+
+def _smoother_sentence(rows: pd.DataFrame) -> str:
+    """Which smoother made the smoothed E of which methods ('' where no row says)."""
+    smoothed = rows[(rows["smoother"] != "") & (rows["kind"] == "model")]
+    groups = smoothed.groupby("smoother", sort=True)["method"].agg(lambda methods: ", ".join(dict.fromkeys(methods)))
+    if groups.empty:
+        return ""
+    if len(groups) == 1:
+        return f"Smoothed E: {SMOOTHER_NAMES.get(groups.index[0], f'preset {groups.index[0]}')}."
+    return "Smoothed E: " + "; ".join(f"{SMOOTHER_NAMES.get(name, f'preset {name}')} for {methods}"
+                                      for name, methods in groups.items()) + "."
+
+
 def _caption(rows: pd.DataFrame, stats: pd.DataFrame, protocol: str) -> str:
     """What a reader needs to judge the table: protocol, data, budget, compute convention, seeds, machine."""
     parts = [f"Protocol {protocol}: {PROTOCOL_NOTES.get(protocol, 'not a known protocol')}."]
@@ -332,6 +349,8 @@ def _caption(rows: pd.DataFrame, stats: pd.DataFrame, protocol: str) -> str:
                  "batch 1, 1 thread) are profiled at each model's reference input shapes, whatever the training "
                  "budget.")
     parts.append(_seeds_sentence(stats, rows))
+    if smoothers := _smoother_sentence(rows):
+        parts.append(smoothers)
     commit = ", ".join(value[:12] for value in _unique(rows, "git_commit")) or "not recorded"
     dirty = " (dirty working tree)" if rows["git_dirty"].str.lower().isin(TRUE).any() else ""
     parts.append(f"Machine: cpu {_joined(rows, 'cpu')}; gpu {_joined(rows, 'gpu', 'none')}; "

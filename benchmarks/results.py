@@ -3,7 +3,8 @@
 Every number of the leaderboard comes from this file. A row is one of three kinds:
 
 - ``model``: a zoo model trained and tested (one model x protocol x seed), with its test metrics
-  per light condition, per drone and per range, GP-smoothed E, and the provenance of the run;
+  per light condition, per drone and per range, smoothed E (``smoother`` names the smoother's preset),
+  and the provenance of the run;
 - ``constant``: the constant-position predictor (the mean training target) on the same split;
 - ``profile``: parameters, GMACs / FLOPs and latency of a model at its reference input shapes.
 
@@ -48,7 +49,7 @@ METHOD = ["model", "method", "category", "alpha", "protocol", "seed"]
 DATA = ["data", "data_kind", "data_root", "data_fingerprint", "drones", "lights",
         "n_train_sequences", "n_val_sequences", "n_test_sequences",
         "n_train_windows", "n_val_windows", "n_test_windows"]
-BUDGET = ["max_epochs", "limit_train_batches", "epochs_run", "best_epoch", "batch_size", "budget_note"]
+BUDGET = ["max_epochs", "limit_train_batches", "epochs_run", "best_epoch", "batch_size", "budget_note", "smoother"]
 METRICS = [f"{name}_{light}" for light in LIGHTS for name in ("Dx", "Dy", "Dz", "E", "RMSE", "E_smooth")]
 BREAKDOWN = ([f"E_{light}_{drone}" for light in LIGHTS for drone in DRONES]
              + [f"E_{light}_{range_name(*band)}" for light in LIGHTS for band in RANGES])
@@ -58,6 +59,8 @@ PROFILE = ["params_total_M", "params_used_M", "gmacs", "gflops", "profile_inputs
 PROVENANCE = ["config_hash", "checkpoint_path", "predictions_path", "git_commit", "git_dirty", "versions",
               "cpu", "gpu", "threads", "launcher", "started_at", "wall_time_s"]
 COLUMNS = IDENTITY + METHOD + DATA + BUDGET + METRICS + BREAKDOWN + PROFILE + PROVENANCE
+#: columns added to schema 1 after its first files were written: empty when an older file lacks them
+LATER_COLUMNS = ("smoother",)
 
 
 class ResultsError(AauteError, ValueError):
@@ -97,8 +100,12 @@ def append_rows(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> None:
         return
     old = path.read_text() if path.exists() else ""
     if old:
-        kept = len(read_results(path))  # refuses a file of another schema
-        if not old.endswith("\n") and len(old.splitlines()) - 1 > kept:
+        earlier = read_results(path)  # refuses a file of another schema
+        if next(csv.reader([old.splitlines()[0]])) != COLUMNS:  # an older header: rewrite its rows under this one
+            new = [{column: cell for column, cell in row.items() if column in COLUMNS}
+                   for row in earlier.astype(object).where(earlier.notna(), "").to_dict("records")] + new
+            old = ""
+        elif not old.endswith("\n") and len(old.splitlines()) - 1 > len(earlier):
             old = old[: old.rfind("\n") + 1]  # drop a line cut short by an interrupted writer
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
@@ -125,7 +132,7 @@ def read_results(path: str | Path) -> pd.DataFrame:
     if not lines:
         raise ResultsError(f"{path}: empty file, expected a results.csv header")
     header = next(csv.reader([lines[0]]))
-    missing = [column for column in COLUMNS if column not in header]
+    missing = [column for column in COLUMNS if column not in header and column not in LATER_COLUMNS]
     if "schema_version" not in header:
         raise ResultsError(f"{path}: not a results.csv (no schema_version column)")
     if missing:
@@ -139,6 +146,9 @@ def read_results(path: str | Path) -> pd.DataFrame:
         if len(record) != len(header):
             raise ResultsError(f"{path}: line {number} has {len(record)} fields, the header {len(header)}")
     frame = pd.DataFrame(records, columns=header, dtype=str)
+    for column in LATER_COLUMNS:
+        if column not in frame:
+            frame[column] = ""
     versions = set(frame["schema_version"]) - {str(SCHEMA_VERSION)}
     if versions:
         raise ResultsError(f"{path}: rows of results schema version(s) {sorted(versions)}; this version "

@@ -59,7 +59,7 @@ CONSTANT_TARGETS = ("gt", "pseudo")
 #: display names in the paper's table
 METHOD_NAMES = {"student": "Ours (AAUTE student)", "audionet": "AudioNet", "voranet": "VorasNet",
                 "asdnet": "ASDNet", "avped": "AV-PED", "avfdti": "AV-FDTI", "visualnet": "VisualNet",
-                "darknet": "DarkNet", "srp_phat": "SRP-PHAT"}
+                "darknet": "DarkNet", "srp_phat": "SRP-PHAT", "phase_student": "Phase student (GCC-PHAT)"}
 
 
 class SuiteError(AauteError, ValueError):

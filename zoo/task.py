@@ -84,7 +84,7 @@ class TrajectoryTask(L.LightningModule):
         self.skipped_batches = 0
         self._checked_inputs = False
         self._predictions: dict[int, list[dict[str, np.ndarray]]] = {}
-        #: GP-smoothed test positions of the last test run: loader index -> sequence index -> N x 3
+        #: smoothed test positions of the last test run: loader index -> sequence index -> N x 3
         self.smoothed_predictions: dict[int, dict[int, np.ndarray]] = {}
 
     # ------------------------------------------------------------------------------ helpers

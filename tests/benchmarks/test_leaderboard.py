@@ -218,6 +218,20 @@ def test_caption_states_data_budget_seeds_machine_and_commit(report):
         assert fact in caption, fact
 
 
+def test_caption_names_the_smoother_of_each_method(tmp_path):
+    rows = [result("student", "by_sequence", 0, 1.0, 1.1, E_smooth_ideal=0.9, smoother="robust"),
+            result("srp_phat", "by_sequence", 0, 3.0, 3.0, E_smooth_ideal=2.9, smoother="tuned"),
+            result("constant", "by_sequence", 0, 5.0, 5.0)]
+    path = tmp_path / "results.csv"
+    append_rows(path, rows)
+    caption = leaderboard.render_leaderboard(path, tmp_path / "board", plots=False).markdown.split("| method")[0]
+    assert ("Smoothed E: the robust Student-t state-space smoother (preset robust) for Ours (student); "
+            "the tuned Matérn GP (preset tuned) for SRP_PHAT") in caption
+    append_rows(path, [{**rows[1], "smoother": "robust"}])  # the newest row of a job counts
+    caption = leaderboard.render_leaderboard(path, tmp_path / "board2", plots=False).markdown.split("| method")[0]
+    assert "Smoothed E: the robust Student-t state-space smoother (preset robust)." in caption
+
+
 def test_missing_constant_is_said_loudly(tmp_path):
     path = tmp_path / "results.csv"
     append_rows(path, [row for row in fixture_rows() if row["kind"] != "constant"])

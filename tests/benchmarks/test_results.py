@@ -60,3 +60,19 @@ def test_an_interrupted_last_line_is_dropped_and_the_file_stays_readable(tmp_pat
     assert "incomplete" in caplog.text
     append_rows(path, [{**ROW, "job_id": "third"}])  # the next append completes the file
     assert read_results(path)["job_id"].tolist() == ["student-by_sequence-s0", "third"]
+
+
+def test_a_file_from_before_the_smoother_column_is_read_and_extended(tmp_path):
+    path = tmp_path / "results.csv"
+    append_rows(path, [ROW])
+    header, body = path.read_text().split("\n", 1)
+    columns = header.split(",")
+    at = columns.index("smoother")
+    older = [",".join(cells[:at] + cells[at + 1:]) for cells in (line.split(",") for line in [header, body.strip()])]
+    path.write_text("\n".join(older) + "\n")  # as written before the column existed
+    assert read_results(path)["smoother"].tolist() == [""]
+    append_rows(path, [{**ROW, "job_id": "robust-job", "smoother": "robust"}])
+    assert path.read_text().split("\n", 1)[0] == header  # rewritten under the current header
+    frame = read_results(path)
+    assert frame["job_id"].tolist() == ["student-by_sequence-s0", "robust-job"]
+    assert frame["smoother"].tolist() == ["", "robust"] and frame["E_ideal"].tolist() == [7.5, 7.5]
