@@ -66,12 +66,13 @@ def test_conversion_is_complete_and_deterministic(fmt, build, model):
     net = first.net  # loaded strictly: no missing or unexpected keys
     mapped = set(first.renamed.values())
     assert mapped.isdisjoint(first.dropped) and mapped | set(first.dropped) == set(original)
+    loaded = net.state_dict()
     for ours, theirs in first.renamed.items():
         if ours not in ("head.position.4.weight", "head.position.4.bias"):  # AV-PedAware's box head is cut to 3
             value = original[theirs]
             if theirs.endswith((".gamma", ".beta")):  # TalkNet's global LayerNorm (1 x C x 1): a C-vector here
                 value = value.flatten()
-            assert torch.equal(net.state_dict()[ours], value)
+            assert torch.equal(loaded[ours], value)
     if model in AUDIO_ONLY:  # the image nets' forwards are checked by the visualnet test below
         with torch.no_grad():
             outputs = net(net.example_inputs(1))
