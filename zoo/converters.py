@@ -20,7 +20,11 @@ Formats and layouts:
   which the original hard-codes, are the published ones.
 - ``avfdti-comparison``: the baselines of ``nets/comparison/`` -> ``audionet`` (``AudioNet_detect``),
   ``visualnet`` (``ResNet_VisualNet``), ``avped`` (``AVPed``), ``darknet`` (``darknet53``; the
-  ``classifier`` view repeats ``features``), ``voranet`` (``voranet``).
+  ``classifier`` view repeats ``features``), ``voranet`` (``voranet``), ``asdnet`` (``talkNetModel`` of
+  ``talkNetModel.py`` and ``talknet/``; dropped: the ``DetectNet(256, 6)`` it declares and never calls,
+  and the first visual ResNet layer's 1 x 1 ``downsample``, declared but unused at stride 1; the
+  V-TCN's global LayerNorm ``gamma`` / ``beta`` of shape 1 x C x 1 become GroupNorm's C-vector
+  ``weight`` / ``bias``; the net keeps its per-sample visual frontend, ``batch_mixing`` off).
 - ``avped``: the original AV-PedAware ``FusionNet`` of ``network/avped.py`` (yizhuoyang/AV-PedAware @
   0a96491) -> ``avped`` with 8 microphone channels, recipe B (``aaute``) audio, d = 512, the gate
   512 -> 256 -> 128 -> 2 and a position head only: its 7 box outputs are cut to the first 3 (the
@@ -72,6 +76,10 @@ def detect_rules(src: str, dst: str) -> list[Rule]:
     for original, ours in (("position_est", "position"), ("cls", "classes"), ("traj", "trajectory")):
         rules += [(rf"{src}{original}{i + 1}\.", f"{dst}{ours}.{2 * i}.") for i in range(3)]
     return rules
+
+
+def _shape(shape: torch.Size) -> str:
+    return "x".join(map(str, shape))
 
 
 def _out(state: dict[str, torch.Tensor], key: str, axis: int = 0) -> int:
@@ -146,6 +154,31 @@ def _avfdti_layout_for(state: dict[str, torch.Tensor]) -> Layout:
                   rules, [*AUDIO_DEAD, r"detection\.position_est\d\."], _avfdti_kwargs, filled=("bev_bounds",))
 
 
+def _asdnet_rules() -> list[Rule]:
+    """``talkNetModel``'s names -> ASDNet's (TalkNet's own block and layer names are kept below each prefix)."""
+    rules = [(r"visualFrontend\.frontend3D\.", "visual_frontend.frontend3d."),
+             (r"visualFrontend\.resnet\.layer1\.(?!downsample\.)", "visual_frontend.resnet.0.")]
+    rules += [(rf"visualFrontend\.resnet\.layer{n}\.", f"visual_frontend.resnet.{n - 1}.") for n in (2, 3, 4)]
+    rules += [(r"visualTCN\.net\.(\d+)\.net\.4\.gamma$", "visual_tcn.{0}.net.4.weight"),
+              (r"visualTCN\.net\.(\d+)\.net\.4\.beta$", "visual_tcn.{0}.net.4.bias"),
+              (r"visualTCN\.net\.", "visual_tcn."), (r"visualConv1D\.net\.", "visual_conv1d."),
+              (r"audioEncoder\.conv1\.", "audio_encoder.stem.0."), (r"audioEncoder\.bn1\.", "audio_encoder.stem.1.")]
+    for n in range(1, 5):
+        rules += [(rf"audioEncoder\.layer{n}\.(\d+)\.se\.fc\.0\.", f"audio_encoder.layers.{n - 1}.{{0}}.se.2."),
+                  (rf"audioEncoder\.layer{n}\.(\d+)\.se\.fc\.2\.", f"audio_encoder.layers.{n - 1}.{{0}}.se.4."),
+                  (rf"audioEncoder\.layer{n}\.", f"audio_encoder.layers.{n - 1}.")]
+    return [*rules, (r"crossA2V\.", "cross_a2v."), (r"crossV2A\.", "cross_v2a."), (r"selfAV\.", "self_av."),
+            (r"fc\.", "fc.0."), (r"fc_p\.", "position."), (r"fc_c\.", "classes.")]
+
+
+def _global_layer_norm(value: torch.Tensor) -> torch.Tensor:
+    """TalkNet's global LayerNorm ``gamma`` / ``beta`` (1 x C x 1) -> GroupNorm's C-vector (else left for the
+    shape check)."""
+    if value.dim() == 3 and value.shape[0] == value.shape[2] == 1:
+        return value.reshape(-1).clone()
+    return value.clone()
+
+
 def _centre(weight: torch.Tensor) -> torch.Tensor:
     """AV-PedAware's 7 box outputs -> the first 3 (the box centre)."""
     return weight[:3].clone()
@@ -191,6 +224,14 @@ LAYOUTS: dict[str, list[Layout]] = {
                 (r"lstm\.", "lstm."), (r"fc1\.", "fc.0."), (r"fc2\.", "position."), (r"fc3\.", "classes.")], [],
                lambda s: {"in_channels": _out(s, "conv1.weight", 1), "channels": _out(s, "conv1.weight"),
                           "hidden": _out(s, "lstm.weight_hh_l0", 1), "num_classes": _out(s, "fc3.weight")}),
+        Layout("asdnet", "asdnet", "talkNetModel (yizhuoyang/AV-FDTI nets/comparison/talkNetModel.py @ f852ff8)",
+               ("visualFrontend.frontend3D.0.weight", "audioEncoder.conv1.weight",
+                "crossA2V.self_attn.in_proj_weight", "fc_p.weight"),
+               _asdnet_rules(), [r"detectnet\.", r"visualFrontend\.resnet\.layer1\.downsample\."],
+               lambda s: {"in_channels": _out(s, "audioEncoder.conv1.weight", 1),
+                          "num_classes": _out(s, "fc_c.weight")},
+               fixes={f"visual_tcn.{block}.net.4.{name}": _global_layer_norm for block in range(5)
+                      for name in ("weight", "bias")}),
     ],
     "avped": [Layout(
         "avped", "avped", "FusionNet (yizhuoyang/AV-PedAware network/avped.py @ 0a96491)",
@@ -329,9 +370,10 @@ def convert_state(state: Any, fmt: str, source: str = "state dict", model: str |
             converted[key] = expected[key].clone()
     for key, value in converted.items():
         if key in expected and tuple(value.shape) != tuple(expected[key].shape):
-            raise WeightsMismatchError(
-                f"{source}: {renamed.get(key, key)} -> {key} has shape {'x'.join(map(str, value.shape))}, the "
-                f"{layout.model} net {net_kwargs} needs {'x'.join(map(str, expected[key].shape))}")
+            stored = state[renamed[key]].shape if key in renamed else value.shape
+            shape = _shape(stored) + (f" ({_shape(value.shape)} once reshaped)" if stored != value.shape else "")
+            raise WeightsMismatchError(f"{source}: {renamed.get(key, key)} -> {key} has shape {shape}, the "
+                                       f"{layout.model} net {net_kwargs} needs {_shape(expected[key].shape)}")
     differences = state_differences(expected, converted)
     if differences:
         raise WeightsMismatchError(f"{source}: conversion as {layout.name} is incomplete: {differences}")

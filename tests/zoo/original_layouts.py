@@ -184,3 +184,70 @@ def avpedaware(seed: int = 0) -> dict[str, torch.Tensor]:
     visual_shapes = {**conv("convres", 2048, 256, (3, 3)), **conv("convvis", 256, 32, (3, 3)),
                      **linear("fcvis", 2048, d)}
     return {**resnet50_views("", seed), **_random(visual_shapes, seed + 1), **_random(shapes, seed + 5)}
+
+
+def attention_layer(prefix: str, d: int) -> dict[str, tuple[int, ...]]:
+    """TalkNet ``attentionLayer``: ``nn.MultiheadAttention`` (packed q/k/v), FFN d -> 4d -> d, two LayerNorms."""
+    return {f"{prefix}self_attn.in_proj_weight": (3 * d, d), f"{prefix}self_attn.in_proj_bias": (3 * d,),
+            **linear(f"{prefix}self_attn.out_proj", d, d), **linear(f"{prefix}linear1", d, 4 * d),
+            **linear(f"{prefix}linear2", 4 * d, d), f"{prefix}norm1.weight": (d,), f"{prefix}norm1.bias": (d,),
+            f"{prefix}norm2.weight": (d,), f"{prefix}norm2.bias": (d,)}
+
+
+def _talknet_visual() -> dict[str, tuple[int, ...]]:
+    """``visualFrontend`` (3-D stem, lip-reading ResNet-18 of four ``ResNetLayer``, each with a 1 x 1
+    ``downsample`` declared), ``visualTCN`` (five ``DSConv1d``) and ``visualConv1D``."""
+    shapes = {"visualFrontend.frontend3D.0.weight": (64, 1, 5, 7, 7), **batchnorm("visualFrontend.frontend3D.1", 64)}
+    for n, (c_in, c_out) in enumerate(((64, 64), (64, 128), (128, 256), (256, 512)), start=1):
+        layer = f"visualFrontend.resnet.layer{n}"
+        shapes.update({**conv(f"{layer}.conv1a", c_in, c_out, (3, 3), bias=False), **batchnorm(f"{layer}.bn1a", c_out),
+                       **conv(f"{layer}.conv2a", c_out, c_out, (3, 3), bias=False),
+                       **conv(f"{layer}.downsample", c_in, c_out, (1, 1), bias=False),
+                       **batchnorm(f"{layer}.outbna", c_out),
+                       **conv(f"{layer}.conv1b", c_out, c_out, (3, 3), bias=False), **batchnorm(f"{layer}.bn1b", c_out),
+                       **conv(f"{layer}.conv2b", c_out, c_out, (3, 3), bias=False),
+                       **batchnorm(f"{layer}.outbnb", c_out)})
+    for block in range(5):  # ReLU, BatchNorm1d, depthwise conv, PReLU, global LayerNorm, pointwise conv
+        net = f"visualTCN.net.{block}.net"
+        shapes.update({**batchnorm(f"{net}.1", 512), f"{net}.2.weight": (512, 1, 3), f"{net}.3.weight": (1,),
+                       f"{net}.4.gamma": (1, 512, 1), f"{net}.4.beta": (1, 512, 1), f"{net}.5.weight": (512, 512, 1)})
+    shapes.update({"visualConv1D.net.0.weight": (256, 512, 5), "visualConv1D.net.0.bias": (256,),
+                   **batchnorm("visualConv1D.net.1", 256), "visualConv1D.net.3.weight": (128, 256, 1),
+                   "visualConv1D.net.3.bias": (128,)})
+    return shapes
+
+
+def _talknet_audio(c_in: int) -> dict[str, tuple[int, ...]]:
+    """``audioEncoder(layers=[3, 4, 6, 3], num_filters=[16, 32, 64, 128])``: SE basic blocks (reduction 8), a
+    1 x 1 conv + BN ``downsample`` where the stride (a tuple from layer 2 on) or the width changes."""
+    shapes = {**conv("audioEncoder.conv1", c_in, 16, (8, 8), bias=False), **batchnorm("audioEncoder.bn1", 16)}
+    width = 16
+    for n, (blocks, planes) in enumerate(zip((3, 4, 6, 3), (16, 32, 64, 128), strict=True), start=1):
+        for block in range(blocks):
+            name = f"audioEncoder.layer{n}.{block}"
+            inplanes = width if block == 0 else planes
+            shapes.update({**conv(f"{name}.conv1", inplanes, planes, (3, 3), bias=False),
+                           **batchnorm(f"{name}.bn1", planes),
+                           **conv(f"{name}.conv2", planes, planes, (3, 3), bias=False),
+                           **batchnorm(f"{name}.bn2", planes), **linear(f"{name}.se.fc.0", planes, planes // 8),
+                           **linear(f"{name}.se.fc.2", planes // 8, planes)})
+            if block == 0 and n > 1:  # layer 1 keeps stride 1 and width 16: no downsample
+                shapes.update({**conv(f"{name}.downsample.0", inplanes, planes, (1, 1), bias=False),
+                               **batchnorm(f"{name}.downsample.1", planes)})
+        width = planes
+    return shapes
+
+
+def comparison_asdnet(seed: int = 0, classes: int = 6) -> dict[str, torch.Tensor]:
+    """AV-FDTI ``talkNetModel``: TalkNet's visual and audio encoders, cross- and self-attention, fc 768-100,
+    fc_p 100-3, fc_c 100-``classes`` and a ``DetectNet(256, 6)`` it declares but never calls."""
+    return dict(_comparison_asdnet(seed, classes))
+
+
+@lru_cache(maxsize=2)
+def _comparison_asdnet(seed: int, classes: int) -> dict[str, torch.Tensor]:
+    shapes = {**_talknet_visual(), **_talknet_audio(4), **detect("detectnet.", 256),
+              **attention_layer("crossA2V.", 128), **attention_layer("crossV2A.", 128),
+              **attention_layer("selfAV.", 256), **linear("fc", 768, 100), **linear("fc_c", 100, classes),
+              **linear("fc_p", 100, 3)}
+    return _random(shapes, seed)

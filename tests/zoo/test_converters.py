@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
+from functools import lru_cache
 
 import pytest
 import torch
@@ -11,7 +13,7 @@ from torch.nn import functional as F
 from tests.zoo import original_layouts as originals
 from zoo.checkpoints import CheckpointError, WeightsMismatchError
 from zoo.cli import main
-from zoo.converters import FORMATS, UnknownLayoutError, convert_state, to_original
+from zoo.converters import FORMATS, Conversion, UnknownLayoutError, convert_state, to_original
 from zoo.registry import get_model
 from zoo.weights import load_pretrained
 from zoo.weights_cli import FORMATS as CLI_FORMATS
@@ -23,6 +25,7 @@ CASES = [
     ("avfdti-comparison", originals.comparison_avped, "avped"),
     ("avfdti-comparison", originals.comparison_voranet, "voranet"),
     ("avfdti-comparison", originals.comparison_darknet, "darknet"),
+    ("avfdti-comparison", originals.comparison_asdnet, "asdnet"),
     ("avfdti", originals.avfdti, "avfdti"),
     ("avped", originals.avpedaware, "avped"),
 ]
@@ -43,6 +46,12 @@ def _net(conversion):
 AUDIO_ONLY = {"student", "audionet", "voranet"}
 
 
+@lru_cache(maxsize=3)
+def _converted(fmt: str, build: Callable[[], dict[str, torch.Tensor]]) -> Conversion:
+    """The conversion of ``build()``, shared by the tests that only read it (the last three big nets kept)."""
+    return convert_state(build(), fmt)
+
+
 def test_the_command_line_knows_every_format():
     assert CLI_FORMATS == FORMATS
 
@@ -50,16 +59,20 @@ def test_the_command_line_knows_every_format():
 @pytest.mark.parametrize(("fmt", "build", "model"), CASES, ids=[case[1].__name__ for case in CASES])
 def test_conversion_is_complete_and_deterministic(fmt, build, model):
     original = build()
-    first, second = convert_state(original, fmt), convert_state(dict(reversed(original.items())), fmt)
+    first, second = _converted(fmt, build), convert_state(dict(reversed(original.items())), fmt)
     assert first.layout.model == model
     assert list(first.state_dict) == list(second.state_dict)  # the file's key order does not matter
     assert all(torch.equal(first.state_dict[key], second.state_dict[key]) for key in first.state_dict)
     net = first.net  # loaded strictly: no missing or unexpected keys
     mapped = set(first.renamed.values())
     assert mapped.isdisjoint(first.dropped) and mapped | set(first.dropped) == set(original)
+    loaded = net.state_dict()
     for ours, theirs in first.renamed.items():
         if ours not in ("head.position.4.weight", "head.position.4.bias"):  # AV-PedAware's box head is cut to 3
-            assert torch.equal(net.state_dict()[ours], original[theirs])
+            value = original[theirs]
+            if theirs.endswith((".gamma", ".beta")):  # TalkNet's global LayerNorm (1 x C x 1): a C-vector here
+                value = value.flatten()
+            assert torch.equal(loaded[ours], value)
     if model in AUDIO_ONLY:  # the image nets' forwards are checked by the visualnet test below
         with torch.no_grad():
             outputs = net(net.example_inputs(1))
@@ -67,9 +80,9 @@ def test_conversion_is_complete_and_deterministic(fmt, build, model):
 
 
 def test_dead_parameters_are_the_documented_ones():
-    assert {key.split(".")[0] for key in convert_state(originals.aaute_student(), "aaute").dropped} == {
+    assert {key.split(".")[0] for key in _converted("aaute", originals.aaute_student).dropped} == {
         "bn1", "bn2", "bn3", "bn4"}
-    dropped = convert_state(originals.avfdti(), "avfdti").dropped
+    dropped = _converted("avfdti", originals.avfdti).dropped
     assert {key for key in dropped if not key.startswith("visualnet.resnet_feature.")} == {
         f"audionet.{name}.{p}" for name in ("convt3", "convf3") for p in ("weight", "bias")} | {
         f"audionet.bn{i}.{p}" for i in range(1, 5) for p in
@@ -100,13 +113,13 @@ def test_the_converted_student_computes_what_the_original_weights_compute():
 def test_the_converted_visualnet_computes_what_the_original_weights_compute():
     from torchvision.models import resnet50
 
-    original = originals.comparison_visualnet(seed=5)
+    original = originals.comparison_visualnet()
     net = _net(convert_state({"state_dict": original}, "avfdti-comparison"))
     resnet = resnet50(weights=None).eval()
     resnet.load_state_dict({k[len("visualnet.resnet_model."):]: v for k, v in original.items()
                             if k.startswith("visualnet.resnet_model.")})
     trunk = torch.nn.Sequential(*list(resnet.children())[:-2])
-    image = net.example_inputs(2)["image"]
+    image = net.example_inputs(1)["image"]
 
     def mlp(x: torch.Tensor, name: str) -> torch.Tensor:
         for i in (1, 2, 3):
@@ -125,8 +138,8 @@ def test_the_converted_visualnet_computes_what_the_original_weights_compute():
 
 
 def test_avpedaware_keeps_the_box_centre_of_its_seven_outputs():
-    original = originals.avpedaware(seed=2)
-    conversion = convert_state(original, "avped")
+    original = originals.avpedaware()
+    conversion = _converted("avped", originals.avpedaware)
     assert torch.equal(conversion.state_dict["head.position.4.weight"], original["position_est3.weight"][:3])
     net = conversion.net
     assert net.in_channels == 8 and net.inputs["audio_mel"] == "aaute" and not hasattr(net.head, "classes")
@@ -195,3 +208,134 @@ def test_the_student_written_in_the_aaute_layout_converts_back_unchanged():
     assert all(torch.equal(back.state_dict[key], value) for key, value in net.state_dict().items())
     with pytest.raises(CheckpointError, match="only the student"):
         to_original(get_model("audionet"), "aaute")
+
+
+# ------------------------------------------------------------------------------- ASDNet (TalkNet adaptation)
+
+#: original names and shapes that talkNetModel's state dict holds (read from its published modules)
+TALKNET_KEYS = {
+    "visualFrontend.frontend3D.0.weight": (64, 1, 5, 7, 7),
+    "visualFrontend.frontend3D.1.running_var": (64,),
+    "visualFrontend.resnet.layer1.conv1a.weight": (64, 64, 3, 3),
+    "visualFrontend.resnet.layer1.downsample.weight": (64, 64, 1, 1),  # declared, unused at stride 1
+    "visualFrontend.resnet.layer2.downsample.weight": (128, 64, 1, 1),
+    "visualFrontend.resnet.layer4.outbnb.num_batches_tracked": (),
+    "visualTCN.net.0.net.1.running_mean": (512,),
+    "visualTCN.net.0.net.2.weight": (512, 1, 3),
+    "visualTCN.net.2.net.3.weight": (1,),
+    "visualTCN.net.4.net.4.gamma": (1, 512, 1),
+    "visualTCN.net.4.net.4.beta": (1, 512, 1),
+    "visualTCN.net.4.net.5.weight": (512, 512, 1),
+    "visualConv1D.net.0.weight": (256, 512, 5),
+    "visualConv1D.net.3.bias": (128,),
+    "audioEncoder.conv1.weight": (16, 4, 8, 8),
+    "audioEncoder.bn1.num_batches_tracked": (),
+    "audioEncoder.layer1.2.se.fc.0.weight": (2, 16),
+    "audioEncoder.layer2.0.downsample.0.weight": (32, 16, 1, 1),
+    "audioEncoder.layer3.5.se.fc.2.weight": (64, 8),
+    "audioEncoder.layer4.0.downsample.1.running_mean": (128,),
+    "audioEncoder.layer4.2.conv2.weight": (128, 128, 3, 3),
+    "crossA2V.self_attn.in_proj_weight": (384, 128),
+    "crossV2A.self_attn.out_proj.bias": (128,),
+    "selfAV.linear1.weight": (1024, 256),
+    "selfAV.norm2.bias": (256,),
+    "detectnet.position_est1.weight": (256, 256),
+    "detectnet.traj3.weight": (30, 128),
+    "fc.weight": (100, 768),
+    "fc_p.weight": (3, 100),
+    "fc_c.bias": (6,),
+}
+TALKNET_ABSENT = ("audioEncoder.layer1.0.downsample.0.weight", "visualFrontend.resnet.avgpool.weight")
+BUFFERS = ("running_mean", "running_var", "num_batches_tracked")
+
+
+@pytest.fixture(scope="module")
+def asdnet_original():
+    return originals.comparison_asdnet(seed=8)
+
+
+@pytest.fixture(scope="module")
+def asdnet_conversion(asdnet_original):
+    return convert_state({f"module.{k}": v for k, v in asdnet_original.items()}, "avfdti-comparison")  # DataParallel
+
+
+def test_the_synthetic_talknet_has_the_published_names_shapes_and_parameter_count(asdnet_original):
+    assert {key: tuple(asdnet_original[key].shape) for key in TALKNET_KEYS} == TALKNET_KEYS
+    assert not any(key in asdnet_original for key in TALKNET_ABSENT)
+    parameters = sum(value.numel() for key, value in asdnet_original.items() if not key.endswith(BUFFERS))
+    assert parameters == 16_125_667  # reference/baselines.md section 11: 16.13 M in total
+
+
+def _talknet_name(key: str) -> str:
+    """talkNetModel's name of one of our ASDNet keys (the inverse direction of the converter's renames)."""
+    parts = key.split(".")
+    top = {"visual_conv1d": "visualConv1D.net", "cross_a2v": "crossA2V", "cross_v2a": "crossV2A", "self_av": "selfAV",
+           "position": "fc_p", "classes": "fc_c"}
+    if parts[0] == "visual_frontend" and parts[1] == "frontend3d":
+        return ".".join(["visualFrontend.frontend3D", *parts[2:]])
+    if parts[0] == "visual_frontend":
+        return ".".join([f"visualFrontend.resnet.layer{int(parts[2]) + 1}", *parts[3:]])
+    if parts[0] == "visual_tcn":
+        if parts[3] == "4":
+            parts[4] = {"weight": "gamma", "bias": "beta"}[parts[4]]
+        return ".".join(["visualTCN.net", *parts[1:]])
+    if parts[0] == "audio_encoder" and parts[1] == "stem":
+        return ".".join([{"0": "audioEncoder.conv1", "1": "audioEncoder.bn1"}[parts[2]], *parts[3:]])
+    if parts[0] == "audio_encoder":
+        if parts[4] == "se":
+            parts[5] = {"2": "fc.0", "4": "fc.2"}[parts[5]]
+        return ".".join([f"audioEncoder.layer{int(parts[2]) + 1}", *parts[3:]])
+    if parts[0] == "fc":
+        return ".".join(["fc", *parts[2:]])
+    return ".".join([top[parts[0]], *parts[1:]])
+
+
+def test_the_converted_asdnet_computes_what_the_net_loaded_directly_computes(asdnet_original, asdnet_conversion):
+    direct = get_model("asdnet").eval()
+    shapes = {key: value.shape for key, value in direct.state_dict().items()}
+    direct.load_state_dict({key: asdnet_original[_talknet_name(key)].reshape(shape) for key, shape in shapes.items()},
+                           strict=True)
+    used = {_talknet_name(key) for key in shapes}
+    assert set(asdnet_original) - used == {key for key in asdnet_original if key.startswith("detectnet.")} | {
+        "visualFrontend.resnet.layer1.downsample.weight"}
+    assert set(asdnet_conversion.dropped) == set(asdnet_original) - used  # named without the module. prefix
+    assert asdnet_conversion.net_kwargs == {"in_channels": 4, "num_classes": 6}
+    inputs = direct.example_inputs(1)
+    with torch.no_grad():
+        converted, expected = asdnet_conversion.net(inputs), direct(inputs)
+    assert all(torch.equal(converted[name], expected[name]) for name in ("position", "class_logits"))
+    assert converted["class_logits"].shape == (1, 6) and torch.isfinite(converted["position"]).all()
+
+
+def test_the_global_layer_norm_becomes_an_equivalent_group_norm(asdnet_original, asdnet_conversion):
+    gamma, beta = asdnet_original["visualTCN.net.3.net.4.gamma"], asdnet_original["visualTCN.net.3.net.4.beta"]
+    y = torch.randn(2, 512, 3, generator=torch.Generator().manual_seed(1))
+    mean = y.mean(dim=(1, 2), keepdim=True)  # TalkNet's gLN: statistics over channels and time, eps 1e-8
+    global_layer_norm = gamma * (y - mean) / ((y - mean).pow(2).mean(dim=(1, 2), keepdim=True) + 1e-8).sqrt() + beta
+    with torch.no_grad():
+        ours = asdnet_conversion.net.visual_tcn[3].net[4](y)
+    assert torch.allclose(ours, global_layer_norm, atol=1e-5)
+
+
+def test_an_asdnet_file_with_a_wrong_shape_names_the_parameter_and_both_shapes(asdnet_original):
+    state = dict(asdnet_original)
+    state["crossV2A.linear1.weight"] = torch.zeros(512, 100)
+    with pytest.raises(WeightsMismatchError, match=r"asd.pth: crossV2A.linear1.weight -> cross_v2a.linear1.weight "
+                                                   r"has shape 512x100, the asdnet net .* needs 512x128"):
+        convert_state(state, "avfdti-comparison", "asd.pth")
+    state = dict(asdnet_original)
+    state["visualTCN.net.2.net.4.gamma"] = torch.ones(1, 256, 1)
+    with pytest.raises(WeightsMismatchError, match=r"visualTCN.net.2.net.4.gamma -> visual_tcn.2.net.4.weight has "
+                                                   r"shape 1x256x1 \(256 once reshaped\), the asdnet net .* needs 512"):
+        convert_state(state, "avfdti-comparison", "asd.pth")
+
+
+def test_import_checkpoint_converts_an_asdnet_file_that_load_pretrained_reads(tmp_path, asdnet_original,
+                                                                             asdnet_conversion):
+    source, out = tmp_path / "asd.pth", tmp_path / "x.pt"
+    torch.save({"state_dict": asdnet_original}, source)
+    assert main(["import-checkpoint", "--format", "avfdti-comparison", str(source), "--out", str(out)]) == 0
+    net = load_pretrained("asdnet", weights=str(out))
+    assert net.pretrained["layout"] == "asdnet" and net.pretrained["format"] == "avfdti-comparison"
+    converted = asdnet_conversion.state_dict
+    assert all(torch.equal(value, converted[key]) for key, value in net.state_dict().items())

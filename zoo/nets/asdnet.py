@@ -42,7 +42,7 @@ Parameters: 15,820,476, all used. Section 11 gives 16.13 M total / 15.72 M used.
 reproduced exactly when the two dead modules of the original are added back: a ``DetectNet(256, 6)``
 that is never called (301,095) and the 1 x 1 downsample convolution of the first ResNet layer, which
 TalkNet declares in every layer but uses only with stride 2 (4,096): 15,820,476 + 305,191 =
-16,125,667. Both are omitted: a checkpoint converter drops ``detectnet.*`` and
+16,125,667. Both are omitted: ``aaute import-checkpoint --format avfdti-comparison`` drops ``detectnet.*`` and
 ``visualFrontend.resnet.layer1.downsample.weight``, renames the prefixes (``visualFrontend.frontend3D`` ->
 ``visual_frontend.frontend3d``, ``resnet.layerN`` -> ``resnet.N-1``, ``audioEncoder.conv1/bn1`` ->
 ``audio_encoder.stem.0/1``, ``audioEncoder.layerN`` -> ``audio_encoder.layers.N-1``, ``se.fc.0/2`` ->
