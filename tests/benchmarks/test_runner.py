@@ -12,7 +12,9 @@ from benchmarks.runner import finished_jobs, run_suite
 from benchmarks.suite import SuiteError, check_job_args, expand_jobs, load_suite
 
 REPO = Path(__file__).resolve().parents[2]
-SUITES = sorted((REPO / "configs" / "benchmark").glob("*.yaml"))
+#: the paper suite expands to dozens of jobs whose LightningCLI arguments are each parsed: slow
+SUITES = [pytest.param(path, marks=pytest.mark.slow) if path.stem == "paper" else path
+          for path in sorted((REPO / "configs" / "benchmark").glob("*.yaml"))]
 SPLIT = {"train": ["sim11-0000-avata"], "val": ["sim11-0001-m300"], "test": ["sim11-0002-mavic2"]}
 
 
@@ -41,6 +43,7 @@ def _write_suite(path: Path, **changes) -> Path:
     return path
 
 
+@pytest.mark.slow  # two student trainings in job processes (the mmaud_v1 suite test covers a normal run)
 def test_a_crashed_job_keeps_the_others_rows_and_a_rerun_completes_only_it(labelled_dir, feature_cache, tmp_path):
     kwargs = {"root": str(labelled_dir), "cache": str(feature_cache)}
     suite = load_suite(_write_suite(tmp_path / "suite.yaml", lr=-1.0, **kwargs))  # Adam refuses lr < 0
@@ -81,7 +84,7 @@ def test_suite_errors_name_the_key(tmp_path, labelled_dir):
         check_job_args(suite, expand_jobs(suite))
 
 
-@pytest.mark.parametrize("path", SUITES, ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", SUITES, ids=lambda p: getattr(p, "stem", None))
 def test_shipped_suites_expand_and_parse(path):
     suite = load_suite(path, {"data.root": "/data/mmaud"} if path.stem == "mmaud_v1" else None)
     jobs = expand_jobs(suite, "fingerprint")

@@ -33,6 +33,7 @@ def _metrics(root: Path) -> pd.DataFrame:
     return pd.read_csv(files[-1])
 
 
+@pytest.mark.slow  # two training processes: about 40 s on an idle 2-core machine
 def test_ddp_fit_on_two_cpu_processes_synchronises_validation_metrics(labelled_dir, feature_cache, tmp_path):
     common = ["--config", str(CONFIG), "--data.root", str(labelled_dir), "--data.split", SPLIT,
               "--data.window_seconds", "1.0", "--data.batch_size", "4", "--data.cache_dir", str(feature_cache),
