@@ -232,6 +232,9 @@ def _add_track_command(sub: argparse._SubParsersAction) -> None:
     out.add_argument("--stdout", action="store_true", help="also write CSV to stdout when writing files")
     out.add_argument("--overwrite", action="store_true", help="replace existing output files")
     track.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    track.add_argument("--batch", type=int, default=1,
+                       help="windows per net call (default 1: each line as soon as its block is in); more speed up "
+                            "a replay and delay each line by up to that many blocks")
     track.set_defaults(func=_cmd_track)
 
 

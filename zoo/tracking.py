@@ -517,7 +517,9 @@ class TrackingReport:
     rows: int = 0
     skipped_windows: int = 0
     latencies: list[float] = field(default_factory=list)
-    compute_seconds: float = 0.0
+    compute_seconds: float = 0.0  #: wall seconds from block arrivals to their lines
+    busy_until: float = 0.0  #: when the last line was written (perf_counter), so overlapping batches count once
+    cpu_seconds: float = 0.0  #: CPU seconds of this process over the run (reading, features, net, smoother, writing)
     audio_seconds: float = 0.0
     wall_seconds: float = 0.0
     threads: int = 1
@@ -530,11 +532,13 @@ class TrackingReport:
         median, p95 = (float(np.median(lat)), float(np.percentile(lat, 95))) if lat.size else (math.nan, math.nan)
         wall = self.audio_seconds / self.wall_seconds if self.wall_seconds > 0 else math.nan
         busy = self.audio_seconds / self.compute_seconds if self.compute_seconds > 0 else math.nan
+        cpu = self.audio_seconds / self.cpu_seconds if self.cpu_seconds > 0 else math.nan
         share = self.frames_computed / self.frames_used if self.frames_used else math.nan
         return (f"{self.updates} updates, {self.rows} rows, {self.skipped_windows} windows skipped; latency per "
                 f"update median {median:.2f} ms, p95 {p95:.2f} ms (block arrival to line written); "
                 f"{self.audio_seconds:.1f} s of audio in {self.wall_seconds:.2f} s: {wall:.1f}x real time "
-                f"({busy:.1f}x counting compute only); STFT frames computed {share:.0%} of those used; "
+                f"({busy:.1f}x counting compute only, {cpu:.1f}x in CPU time); STFT frames computed {share:.0%} of "
+                f"those used; "
                 f"{self.threads} torch thread(s); ended by {self.ended}")
 
 
@@ -548,10 +552,13 @@ class Tracker:
         lag: seconds of future each smoothed position may use (0: causal).
         preset: the robust smoother's preset.
         hop_seconds: seconds between positions.
+        batch: windows per net call. 1 (the default) gives each block its line as soon as it is computed;
+            more raise the throughput of a replay (one matrix product instead of several) and delay the
+            earlier windows of each batch by the later ones' blocks.
     """
 
     def __init__(self, model: TrackingModel, source: AudioSource, writers: Sequence[Any], lag: float = 0.0,
-                 preset: str = "robust", hop_seconds: float = HOP_SECONDS):
+                 preset: str = "robust", hop_seconds: float = HOP_SECONDS, batch: int = 1):
         self.model, self.source, self.writers = model, source, list(writers)
         channels = getattr(model.net, "in_channels", source.channels)
         if channels != source.channels:
@@ -562,6 +569,9 @@ class Tracker:
             raise TrackingError(f"{source.name}: a {hop_seconds:g} s hop is {block:g} samples at "
                                 f"{source.sample_rate:g} Hz; expected a whole number")
         self.block = int(round(block))
+        if batch < 1:
+            raise ConfigError(f"--batch must be at least 1, got {batch}")
+        self.batch = int(batch)
         self.window = int(round(model.window_seconds * source.sample_rate))
         self.front = IncrementalMel(model.recipe, source.sample_rate, source.channels, self.window)
         self.smoother = OnlineSmoother(preset, lag=lag)
@@ -576,58 +586,71 @@ class Tracker:
                 writer.write(row)
         report.rows += len(rows)
 
-    def _position(self) -> np.ndarray:
-        features = self.front.features()
-        with torch.inference_mode():
-            return self.model.net({"audio_mel": features[None]})["position"][0].double().numpy()
+    def _positions(self, pending: list[tuple[int, torch.Tensor, float]], report: TrackingReport) -> None:
+        """Run the net on the pending windows (one batch), smooth and write their rows in time order.
 
-    def run(self) -> TrackingReport:
-        """Track until the source ends; returns the report (also logged)."""
-        report = TrackingReport(threads=torch.get_num_threads())
-        wall_start = time.perf_counter()
-        blocks = self.source.blocks(self.block)
-        while True:
-            try:
-                block = next(blocks)
-            except StopIteration:
-                break
-            except KeyboardInterrupt:  # the usual way to stop a live stream: finish cleanly
-                report.ended = "an interrupt"
-                break
-            arrival = time.perf_counter()
-            stop = self.front.end + block.shape[1]
-            if not np.isfinite(block).all():
-                t = self._timestamp(stop - block.shape[1])
-                log.warning("%s: the block at %.3f-%.3f s holds %d NaN or infinite samples: skipped; no position "
-                            "from windows that contain it (until %.3f s)", self.source.name, t, self._timestamp(stop),
-                            int((~np.isfinite(block)).sum()), self._timestamp(stop + self.window))
-                self.bad_until = stop + self.window - 1  # every window ending before stop + window holds it
-            self.front.push(block)
-            if stop < self.window:
-                continue
-            if stop <= self.bad_until:
-                report.skipped_windows += 1
-                continue
-            position = self._position()
-            report.updates += 1
+        Raises:
+            BrokenPipeError: stdout was closed by its reader.
+        """
+        if not pending:
+            return
+        with torch.inference_mode():
+            batch = torch.stack([features for _, features, _ in pending])
+            positions = self.model.net({"audio_mel": batch})["position"].double().numpy()
+        report.updates += len(pending)
+        for (stop, _, arrival), position in zip(pending, positions, strict=True):
             if not np.isfinite(position).all():
                 log.warning("%s: model %s gave a non-finite position at %.3f s: skipped", self.source.name,
                             self.model.name, self._timestamp(stop))
                 report.skipped_windows += 1
                 continue
-            rows = self.smoother.update(self._timestamp(stop), position)
-            try:
-                self._emit(rows, report)
-            except BrokenPipeError:  # the reader of stdout went away: nobody to track for
-                report.ended = "the output being closed"
-                _silence_stdout()
-                break
+            self._emit(self.smoother.update(self._timestamp(stop), position), report)
             done = time.perf_counter()
             report.latencies.append(done - arrival)
-            report.compute_seconds += done - arrival
-        if report.ended != "the output being closed":
+            report.compute_seconds += done - max(arrival, report.busy_until)
+            report.busy_until = done
+        pending.clear()
+
+    def run(self) -> TrackingReport:
+        """Track until the source ends (or stalls, or is interrupted); returns the report."""
+        report = TrackingReport(threads=torch.get_num_threads())
+        wall_start, cpu_start = time.perf_counter(), time.process_time()
+        blocks = self.source.blocks(self.block)
+        pending: list[tuple[int, torch.Tensor, float]] = []  #: windows waiting for the net: stop, map, arrival
+        try:
+            while True:
+                try:
+                    block = next(blocks)
+                except StopIteration:
+                    break
+                except KeyboardInterrupt:  # the usual way to stop a live stream: finish cleanly
+                    report.ended = "an interrupt"
+                    break
+                arrival = time.perf_counter()
+                stop = self.front.end + block.shape[1]
+                if not np.isfinite(block).all():
+                    t = self._timestamp(stop - block.shape[1])
+                    log.warning("%s: the block at %.3f-%.3f s holds %d NaN or infinite samples: skipped; no "
+                                "position from windows that contain it (until %.3f s)", self.source.name, t,
+                                self._timestamp(stop), int((~np.isfinite(block)).sum()),
+                                self._timestamp(stop + self.window))
+                    self.bad_until = stop + self.window - 1  # every window ending before stop + window holds it
+                self.front.push(block)
+                if stop < self.window:
+                    continue
+                if stop <= self.bad_until:
+                    report.skipped_windows += 1
+                    continue
+                pending.append((stop, self.front.features(), arrival))
+                if len(pending) >= self.batch:
+                    self._positions(pending, report)
+            self._positions(pending, report)
             self._emit(self.smoother.flush(), report)
+        except BrokenPipeError:  # the reader of stdout went away: nobody left to track for
+            report.ended = "the output being closed"
+            _silence_stdout()
         report.wall_seconds = time.perf_counter() - wall_start
+        report.cpu_seconds = time.process_time() - cpu_start
         report.audio_seconds = self.front.end / self.source.sample_rate
         report.frames_computed, report.frames_used = self.front.computed, self.front.used
         if self.source.stalled:
@@ -691,7 +714,7 @@ def run_track(args: Any) -> int:
             tmp = stack.enter_context(atomic_write(args.mcap_out))
             mcap_writer = McapTrackWriter(stack.enter_context(open(tmp, "wb")), args.topic)
             writers.append(mcap_writer)
-        report = Tracker(model, source, writers, lag=args.lag, preset=args.preset).run()
+        report = Tracker(model, source, writers, lag=args.lag, preset=args.preset, batch=args.batch).run()
         if mcap_writer is not None:
             mcap_writer.finish()
     sys.stderr.write(f"aaute track: {report.summary()}\n")

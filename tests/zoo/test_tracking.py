@@ -114,12 +114,14 @@ def test_incremental_mel_equals_the_offline_recipe(recipe, rate):
 # ---------------------------------------------------------------------------------------------- equality
 
 
-def test_track_from_mcap_equals_offline_predict_and_causal_smoothing(recording_path, student_weights, offline_track):
+@pytest.mark.parametrize("batch", [1, 4])
+def test_track_from_mcap_equals_offline_predict_and_causal_smoothing(recording_path, student_weights, offline_track,
+                                                                    batch):
     model = load_tracking_model(weights=student_weights)
     assert model.recipe.name == "aaute" and model.window_seconds == 2.0
     rows = Rows()
-    report = Tracker(model, RecordingSource(recording_path), [rows]).run()
-    assert report.updates == len(rows.rows) and report.skipped_windows == 0
+    report = Tracker(model, RecordingSource(recording_path), [rows], batch=batch).run()
+    assert report.updates == len(rows.rows) == 21 and report.skipped_windows == 0
     mean, std, offline_mean, offline_std = _matched(rows.arrays(), offline_track)
     assert np.abs(mean - offline_mean).max() < 1e-4
     assert np.abs(std - offline_std).max() < 1e-4
@@ -143,6 +145,34 @@ def test_track_from_stdin_pcm_equals_offline(recording_path, student_weights, of
     mean, std, offline_mean, offline_std = _matched(rows.arrays(), offline_track)
     assert np.abs(mean - offline_mean).max() < 1e-4
     assert np.abs(std - offline_std).max() < 1e-4
+
+
+def test_track_from_wav_equals_offline_and_says_where_mics_come_from(recording_path, student_weights,
+                                                                     offline_track, tmp_path):
+    from scipy.io import wavfile
+
+    from zoo.tracking import WavSource
+
+    data, rate, t0 = _pcm(recording_path)
+    wav = tmp_path / "audio.wav"
+    wavfile.write(wav, int(rate), np.frombuffer(data, dtype="<i2").reshape(-1, 4))
+    source = WavSource(wav, t0=t0)
+    assert "default array 'distributed4'" in source.mic_source and source.mic_positions.shape == (4, 3)
+    rows = Rows()
+    Tracker(load_tracking_model(weights=student_weights), source, [rows]).run()
+    mean, _, offline_mean, _ = _matched(rows.arrays(), offline_track)
+    assert np.abs(mean - offline_mean).max() < 1e-4
+    assert WavSource(wav, mic_positions=_mics(tmp_path, 4)).mic_source == str(_mics(tmp_path, 4))
+    with pytest.raises(TrackingError, match="expected 4 rows of x y z"):
+        WavSource(wav, mic_positions=_mics(tmp_path, 3))
+
+
+def test_realtime_replay_paces_blocks(recording_path, monkeypatch):
+    delays = []
+    monkeypatch.setattr("zoo.tracking.time.sleep", delays.append)
+    blocks = list(RecordingSource(recording_path, realtime=True).blocks(4800))
+    assert len(blocks) == 40 and len(delays) >= 35  # replayed far faster than 0.1 s a block: each one waits
+    assert max(delays) <= 4.0 + 1e-6
 
 
 def test_track_cli_on_stdin_writes_csv_and_reports(recording_path, student_weights, offline_track, tmp_path,
@@ -277,3 +307,20 @@ def test_cli_errors_are_one_line(student_weights, capsys, monkeypatch):
     code = main(["track", "--weights", str(student_weights), "--audio", "-", "--channels", "4", "--rate", "48000"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "7 bytes is not a whole number" in err[0]
+
+
+def test_checkpoint_gives_the_recipe_and_window_of_its_data(student_weights, tmp_path):
+    """A Lightning checkpoint of aaute fit: net and weights from its task, recipe and window from its DataModule."""
+    from zoo.checkpoints import read_checkpoint
+
+    state = read_checkpoint(student_weights).state_dict
+    checkpoint = {"state_dict": {f"net.{key}": value for key, value in state.items()},
+                  "hyper_parameters": {"net": "student", "net_kwargs": {}, "alpha": 1.0},
+                  "datamodule_hyper_parameters": {"inputs": {"audio_mel": "aaute_joint"}, "window_seconds": 2.0}}
+    path = tmp_path / "student.ckpt"
+    torch.save(checkpoint, path)
+    model = load_tracking_model(ckpt_path=path)
+    assert (model.name, model.recipe.name, model.window_seconds) == ("student", "aaute_joint", 2.0)
+    assert load_tracking_model(ckpt_path=path, recipe="aaute").recipe.name == "aaute"
+    with pytest.raises(TrackingError, match="recipe 'avfdti_13' makes \\(13, 13\\)"):
+        load_tracking_model(ckpt_path=path, recipe="avfdti_13")
