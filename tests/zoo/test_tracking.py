@@ -324,3 +324,23 @@ def test_checkpoint_gives_the_recipe_and_window_of_its_data(student_weights, tmp
     assert load_tracking_model(ckpt_path=path, recipe="aaute").recipe.name == "aaute"
     with pytest.raises(TrackingError, match="recipe 'avfdti_13' makes \\(13, 13\\)"):
         load_tracking_model(ckpt_path=path, recipe="avfdti_13")
+
+
+def test_audionet_streams_its_own_recipe(recording_path, tmp_path):
+    from datamodules.features import audio_window
+    from zoo.registry import get_model
+    from zoo.weights import save_weights_file
+
+    torch.manual_seed(1)
+    weights = save_weights_file(get_model("audionet"), tmp_path / "audionet.pt", net_kwargs={})
+    model = load_tracking_model(weights=weights)
+    assert model.recipe.name == "avfdti"
+    rows = Rows()
+    Tracker(model, RecordingSource(recording_path), [rows]).run()
+    assert len(rows.rows) == 21
+    # the first row is the net on the offline features of the first window (the filter starts at the frame)
+    audio = open_recording(recording_path).audio
+    features = mel_features(audio_window(audio, audio.t0 + 2.0, model.recipe, 2.0), audio.sample_rate, model.recipe)
+    with torch.no_grad():
+        first = model.net({"audio_mel": features[None]})["position"][0].double().numpy()
+    assert np.abs(rows.rows[0].mean - first).max() < 1e-4
