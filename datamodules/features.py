@@ -218,25 +218,27 @@ def mel_frame_layout(recipe: MelRecipe, sample_rate: float, window_samples: int)
 
 
 @lru_cache(maxsize=16)
-def _sparse_filterbank(recipe: MelRecipe, sample_rate: float):
+def _interleaved_filterbank(recipe: MelRecipe, sample_rate: float):
+    """The recipe's mel filterbank as a sparse n_mels x (2 x bins) matrix acting on squared (re, im) pairs."""
     import scipy.sparse
 
-    return scipy.sparse.csr_matrix(_mel_transform(recipe, sample_rate).mel_scale.fb.numpy().T)
+    bank = _mel_transform(recipe, sample_rate).mel_scale.fb.numpy()  # bins x n_mels
+    return scipy.sparse.csr_matrix(np.repeat(bank, 2, axis=0).T)
 
 
 def frame_power_mel(frames: torch.Tensor, recipe: MelRecipe, sample_rate: float) -> torch.Tensor:
     """Power mel of raw STFT frames (... x F x n_fft samples, not yet windowed) -> ... x n_mels x F.
 
     The same window, FFT size, power and filterbank as :func:`mel_features` (the recipe's torchaudio
-    transform), applied to frames one at a time; the filterbank is applied as a sparse matrix (each
-    FFT bin feeds at most two mel bands), which only reorders the sums of the dense product.
+    transform), applied to frames one at a time. The filterbank is applied as a sparse matrix (each FFT
+    bin feeds at most two mel bands) to the squared real and imaginary parts side by side, which sums
+    ``re^2 + im^2`` inside the product: the same sums as the dense product, in another order.
     """
-    transform = _mel_transform(recipe, float(sample_rate))
-    stft = transform.spectrogram
+    stft = _mel_transform(recipe, float(sample_rate)).spectrogram
     with torch.no_grad():
         spectrum = torch.fft.rfft(frames * stft.window, n=stft.n_fft)
-        power = (spectrum.real.square() + spectrum.imag.square()).reshape(-1, spectrum.shape[-1])
-        mel = _sparse_filterbank(recipe, float(sample_rate)) @ power.numpy().T  # n_mels x (... F)
+        squares = torch.view_as_real(spectrum).square_().reshape(-1, 2 * spectrum.shape[-1])
+        mel = _interleaved_filterbank(recipe, float(sample_rate)) @ squares.numpy().T  # n_mels x (... F)
     mel = torch.from_numpy(np.ascontiguousarray(mel, dtype=np.float32))
     return mel.reshape(mel.shape[0], *frames.shape[:-1]).movedim(0, -2)
 
