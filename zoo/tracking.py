@@ -262,8 +262,8 @@ class PcmSource(AudioSource):
             yield np.ascontiguousarray((values.astype(np.float64) / self.scale).T, dtype=np.float32)
 
     def _end(self, partial_bytes: int) -> None:
-        """Check the byte count at the end of the stream and record the dropped partial block."""
-        if self.bytes_read % self.frame_bytes:
+        """Check the byte count at the end of the stream (not at a stall) and record the dropped partial block."""
+        if self.bytes_read % self.frame_bytes and not self.stalled:
             raise TrackingError(
                 f"{self.name}: {self.bytes_read} bytes is not a whole number of {self.channels}-channel "
                 f"{self.format} frames ({self.frame_bytes} bytes each); check --channels and --format")
@@ -623,9 +623,6 @@ class Tracker:
                     block = next(blocks)
                 except StopIteration:
                     break
-                except KeyboardInterrupt:  # the usual way to stop a live stream: finish cleanly
-                    report.ended = "an interrupt"
-                    break
                 arrival = time.perf_counter()
                 stop = self.front.end + block.shape[1]
                 if not np.isfinite(block).all():
@@ -645,10 +642,17 @@ class Tracker:
                 if len(pending) >= self.batch:
                     self._positions(pending, report)
             self._positions(pending, report)
-            self._emit(self.smoother.flush(), report)
+        except KeyboardInterrupt:  # the usual way to stop a live stream: end cleanly with what is known
+            report.ended = "an interrupt"
         except BrokenPipeError:  # the reader of stdout went away: nobody left to track for
             report.ended = "the output being closed"
             _silence_stdout()
+        if report.ended != "the output being closed":
+            try:
+                self._emit(self.smoother.flush(), report)
+            except BrokenPipeError:
+                report.ended = "the output being closed"
+                _silence_stdout()
         report.wall_seconds = time.perf_counter() - wall_start
         report.cpu_seconds = time.process_time() - cpu_start
         report.audio_seconds = self.front.end / self.source.sample_rate

@@ -344,3 +344,16 @@ def test_audionet_streams_its_own_recipe(recording_path, tmp_path):
     with torch.no_grad():
         first = model.net({"audio_mel": features[None]})["position"][0].double().numpy()
     assert np.abs(rows.rows[0].mean - first).max() < 1e-4
+
+
+def test_interrupt_ends_the_run_cleanly(recording_path, student_weights):
+    class Interrupted(RecordingSource):
+        def blocks(self, size):
+            for i, block in enumerate(super().blocks(size)):
+                if i == 25:
+                    raise KeyboardInterrupt
+                yield block
+
+    rows = Rows()
+    report = Tracker(load_tracking_model(weights=student_weights), Interrupted(recording_path), [rows], lag=0.3).run()
+    assert report.ended == "an interrupt" and len(rows.rows) == 6  # 2.0 ... 2.5 s, the lagged ones flushed
