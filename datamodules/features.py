@@ -214,6 +214,9 @@ def mel_frame_layout(recipe: MelRecipe, sample_rate: float, window_samples: int)
     ``s + j * hop + n_fft // 2`` (zeros outside the window), as torch.stft with ``center=True`` places it.
     """
     stft = _mel_transform(recipe, float(sample_rate)).spectrogram
+    if not stft.center or stft.win_length != stft.n_fft or stft.pad_mode != "constant":
+        raise ValueError(f"recipe {recipe.name!r}: frames are laid out for centred, zero-padded STFTs whose window "
+                         f"spans n_fft")
     return 1 + window_samples // stft.hop_length, stft.n_fft, stft.hop_length
 
 

@@ -5,29 +5,30 @@ project reads, played as fast as possible or at real time; a WAV file; raw PCM f
 block, the window of ``window_seconds`` ending at the block's last sample goes through the model's mel
 recipe, the net gives a position, and :class:`~zoo.robust_smoothing.OnlineSmoother` (causal at ``lag`` 0,
 fixed-lag otherwise) turns it into rows ``timestamp, x, y, z, std_x, std_y, std_z`` that the writers flush
-one line at a time.
+one line at a time. ``batch`` > 1 runs the net on several ready windows at once (faster replays, later lines).
 
 Front end. :class:`IncrementalMel` keeps the last window of samples and a store of power-mel frames keyed
 by their first sample, so every STFT frame of the stream is computed once, whichever windows share it.
 Each window's spectrogram is assembled from the store (plus its two zero-padded edge frames, which belong
 to that window alone) and finished by :func:`datamodules.features.mel_map`, the offline recipe's own
 normalisation and resizing, so the map equals :func:`datamodules.features.mel_features` on the same
-samples (to float rounding). How much is shared depends on the grid: frames of a window starting at
-sample ``s`` start at ``s + j * hop - n_fft / 2``, so windows 0.1 s apart share frames only when the
-hop divides the block. At 48 kHz with hop 1024 (the student's recipe) a 4800-sample block moves the grid
-by 704 samples: a window shares frames with the window 1.6 s before it (16 blocks, 75 hops), about a fifth
-of its 94 frames, and each block costs about 75 new frames. With a hop that divides the block (hop 480
-or 960 at 48 kHz, hop 512 or 1024 at 51.2 kHz) a block costs ``block / hop`` frames.
+samples (to float rounding, tested to 1e-5). How much is shared depends on the grid: frames of a window
+starting at sample ``s`` start at ``s + j * hop - n_fft / 2``, so windows 0.1 s apart share frames only
+when the hop divides the block. At 48 kHz with hop 1024 (the student's recipe) a 4800-sample block moves
+the grid by 704 samples: a window shares frames only with the window 1.6 s (16 blocks, 75 hops) before
+it, and each update computes 77 of its 94 frames. Where the hop divides the block (hop 1024 or 512 at
+51.2 kHz) an update computes ``block / hop`` interior frames and its two edge frames.
 
 Windows end exactly where the DataModule's do: a position at ``t0 + k * hop`` uses the samples
 ``[k * block - window, k * block)``, so the positions equal ``aaute predict`` on the recording's label
 times followed by :func:`~zoo.robust_smoothing.smooth_online` (tested).
 
 Bad input: a PCM byte count that is not a whole number of frames of ``channels`` x the sample size is
-refused (wrong ``--channels`` or ``--format``); float samples far beyond full scale are refused (wrong
-``--format``); a block holding NaN or infinite samples is skipped and reported, and no position is
-made from a window containing it; a stream that stalls (``stall_timeout``) or ends inside a block ends
-the run cleanly after the smoother has emitted what it holds; audio shorter than one window is an error.
+refused at the end of the stream (wrong ``--channels`` or ``--format``); float samples far beyond full
+scale are refused (wrong ``--format``); a block holding NaN or infinite samples is skipped and reported,
+and no position is made from a window containing it (the recording readers refuse such audio themselves);
+a stream that stalls (``stall_timeout``), ends inside a block or is interrupted ends the run cleanly after
+the smoother has emitted what it holds; audio shorter than one window is an error.
 """
 
 from __future__ import annotations
