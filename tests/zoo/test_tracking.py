@@ -357,3 +357,22 @@ def test_interrupt_ends_the_run_cleanly(recording_path, student_weights):
     rows = Rows()
     report = Tracker(load_tracking_model(weights=student_weights), Interrupted(recording_path), [rows], lag=0.3).run()
     assert report.ended == "an interrupt" and len(rows.rows) == 6  # 2.0 ... 2.5 s, the lagged ones flushed
+
+
+def test_csv_lines_are_flushed_one_by_one():
+    from zoo.robust_smoothing import OnlineRow
+    from zoo.tracking import CsvWriter
+
+    class Counting(io.StringIO):
+        flushes = 0
+
+        def flush(self):
+            self.flushes += 1
+            super().flush()
+
+    stream = Counting()
+    writer = CsvWriter(stream)
+    for k in range(3):
+        writer.write(OnlineRow(2.0 + k / 10, np.array([1.0, 2.0, 3.0]), np.array([0.1, 0.2, 0.3]), 1.0))
+        assert stream.flushes == k + 2 and stream.getvalue().count("\n") == k + 2  # header, then each row at once
+    assert stream.getvalue().splitlines()[1] == "2.000000,1.000000,2.000000,3.000000,0.100000,0.200000,0.300000"
