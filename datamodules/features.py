@@ -181,20 +181,69 @@ def _minmax(spec: torch.Tensor, joint: bool = False) -> torch.Tensor:
     return (spec - lo) / torch.clamp(hi - lo, min=torch.finfo(spec.dtype).tiny)
 
 
-def mel_features(samples: np.ndarray, sample_rate: float, recipe: MelRecipe) -> torch.Tensor:
-    """Apply ``recipe`` to raw audio (channels x samples) -> float32 C x H x W."""
-    samples = np.ascontiguousarray(samples, dtype=np.float32)
-    if not np.isfinite(samples).all():
-        raise RecordingError("audio window holds NaN or infinite samples")
-    x = torch.from_numpy(samples)
+def mel_map(power_mel: torch.Tensor, recipe: MelRecipe) -> torch.Tensor:
+    """A window's power mel spectrogram (C x n_mels x frames) -> the recipe's map (float32 C x H x W).
+
+    The second half of :func:`mel_features`: min-max, resize, crop and the optional second resize.
+    The streaming front end (:mod:`zoo.tracking`) assembles the spectrogram from frames it computed
+    once (:func:`frame_power_mel`) and calls this on it.
+    """
     with torch.no_grad():
-        spec = _minmax(_power_mel(x, _mel_transform(recipe, float(sample_rate))), recipe.joint_minmax)
+        spec = _minmax(power_mel, recipe.joint_minmax)
         out = resize(spec, list(recipe.resize), interpolation=InterpolationMode.BILINEAR, antialias=True)
         if recipe.keep_rows is not None:
             out = out[:, : recipe.keep_rows]
         if recipe.final_resize is not None:
             out = resize(out, list(recipe.final_resize), interpolation=InterpolationMode.BILINEAR, antialias=True)
     return out.contiguous()
+
+
+def mel_features(samples: np.ndarray, sample_rate: float, recipe: MelRecipe) -> torch.Tensor:
+    """Apply ``recipe`` to raw audio (channels x samples) -> float32 C x H x W."""
+    samples = np.ascontiguousarray(samples, dtype=np.float32)
+    if not np.isfinite(samples).all():
+        raise RecordingError("audio window holds NaN or infinite samples")
+    with torch.no_grad():
+        return mel_map(_power_mel(torch.from_numpy(samples), _mel_transform(recipe, float(sample_rate))), recipe)
+
+
+def mel_frame_layout(recipe: MelRecipe, sample_rate: float, window_samples: int) -> tuple[int, int, int]:
+    """(frames, n_fft, hop) of the recipe's STFT over a window of ``window_samples`` (centred frames).
+
+    Frame ``j`` of a window starting at sample ``s`` covers samples ``s + j * hop - n_fft // 2`` to
+    ``s + j * hop + n_fft // 2`` (zeros outside the window), as torch.stft with ``center=True`` places it.
+    """
+    stft = _mel_transform(recipe, float(sample_rate)).spectrogram
+    if not stft.center or stft.win_length != stft.n_fft or stft.pad_mode != "constant":
+        raise ValueError(f"recipe {recipe.name!r}: frames are laid out for centred, zero-padded STFTs whose window "
+                         f"spans n_fft")
+    return 1 + window_samples // stft.hop_length, stft.n_fft, stft.hop_length
+
+
+@lru_cache(maxsize=16)
+def _interleaved_filterbank(recipe: MelRecipe, sample_rate: float):
+    """The recipe's mel filterbank as a sparse n_mels x (2 x bins) matrix acting on squared (re, im) pairs."""
+    import scipy.sparse
+
+    bank = _mel_transform(recipe, sample_rate).mel_scale.fb.numpy()  # bins x n_mels
+    return scipy.sparse.csr_matrix(np.repeat(bank, 2, axis=0).T)
+
+
+def frame_power_mel(frames: torch.Tensor, recipe: MelRecipe, sample_rate: float) -> torch.Tensor:
+    """Power mel of raw STFT frames (... x F x n_fft samples, not yet windowed) -> ... x n_mels x F.
+
+    The same window, FFT size, power and filterbank as :func:`mel_features` (the recipe's torchaudio
+    transform), applied to frames one at a time. The filterbank is applied as a sparse matrix (each FFT
+    bin feeds at most two mel bands) to the squared real and imaginary parts side by side, which sums
+    ``re^2 + im^2`` inside the product: the same sums as the dense product, in another order.
+    """
+    stft = _mel_transform(recipe, float(sample_rate)).spectrogram
+    with torch.no_grad():
+        spectrum = torch.fft.rfft(frames * stft.window, n=stft.n_fft)
+        squares = torch.view_as_real(spectrum).square_().reshape(-1, 2 * spectrum.shape[-1])
+        mel = _interleaved_filterbank(recipe, float(sample_rate)) @ squares.numpy().T  # n_mels x (... F)
+    mel = torch.from_numpy(np.ascontiguousarray(mel, dtype=np.float32))
+    return mel.reshape(mel.shape[0], *frames.shape[:-1]).movedim(0, -2)
 
 
 # --------------------------------------------------------------------------------------------- image

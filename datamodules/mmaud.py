@@ -64,6 +64,9 @@ log = logging.getLogger(__name__)
 INPUT_KINDS = ("audio_mel", "audio_phase", "image")
 TARGET_MODES = ("both", "ground_truth", "pseudo")
 LIGHTS = ("ideal", "dark")
+#: how audio windows are placed on samples, part of the cache keys of audio features; "w2": a label time within
+#: float64 resolution of a sample boundary ends its window on that boundary (AudioStream.sample_index)
+WINDOW_INDEXING = "w2"
 #: the splits each stage needs windows in
 STAGE_SPLITS = {"fit": ("train", "val"), "validate": ("val",), "test": ("test",), "predict": ("test",)}
 
@@ -447,7 +450,8 @@ class MMAUDDataModule(L.LightningDataModule):
         keys: dict[str, str] = {}
         if self.audio_recipe is not None:
             recipe, audio = self.audio_recipe, recording.audio
-            key = f"mel-{recipe.key()}-{self.hparams.window_seconds:g}-{int(self.hparams.faithful_window_order)}-{base}"
+            key = (f"mel-{recipe.key()}-{self.hparams.window_seconds:g}-{int(self.hparams.faithful_window_order)}"
+                   f"-{WINDOW_INDEXING}-{base}")
             keys["audio_mel"] = key
 
             def mel(i: int) -> np.ndarray:
@@ -459,7 +463,7 @@ class MMAUDDataModule(L.LightningDataModule):
         if self.phase_recipe is not None:
             recipe, audio = self.phase_recipe, recording.audio
             mics = array_fingerprint(audio.mic_positions.astype(np.float64))
-            key = f"phase-{recipe.key()}-{mics}-{base}"
+            key = f"phase-{recipe.key()}-{mics}-{WINDOW_INDEXING}-{base}"
             keys["audio_phase"] = key
             # float16 halves the cache (values lie in [-1, 1]; 1e-3 resolution is far below the frames' noise)
             self.cache.build(key, times.size, recipe.output_shape(audio.num_channels), np.float16,

@@ -238,8 +238,15 @@ class AudioStream(ABC):
         """Samples ``start:stop`` as float32 (channels x (stop - start)); the range must be inside."""
 
     def sample_index(self, t: float) -> int:
-        """Index of the sample at (or just before) time ``t``."""
-        return int(np.floor((t - self.t0) * self.sample_rate + 1e-9))
+        """Index of the sample at (or just before) time ``t``.
+
+        A time within a few float64 steps of a sample boundary is that boundary: absolute stamps near
+        1.7e9 s hold only 0.24 us, so ``t0 + k / fs`` read back from nanoseconds can land a hair before
+        sample ``k`` and would otherwise end a window one sample early.
+        """
+        position = (t - self.t0) * self.sample_rate
+        tolerance = max(1e-9, 4.0 * (np.spacing(abs(t)) + np.spacing(abs(self.t0))) * self.sample_rate)
+        return int(np.floor(position + tolerance))
 
     def window(self, t_end: float, seconds: float) -> np.ndarray:
         """The ``seconds`` of audio ending at ``t_end`` (causal), channels x round(seconds * fs)."""

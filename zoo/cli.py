@@ -190,8 +190,56 @@ def _cmd_smooth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_track(args: argparse.Namespace) -> int:
+    from zoo.tracking import run_track
+
+    return run_track(args)
+
+
+def _add_track_command(sub: argparse._SubParsersAction) -> None:
+    """Register ``aaute track`` on an argparse subparsers object."""
+    track = sub.add_parser(
+        "track", help="real-time positions with uncertainty every 0.1 s from audio alone",
+        description="Track a drone from microphone audio: a recording (MCAP or any layout aaute reads), a WAV "
+                    "file, or raw PCM on stdin ('-'). After each 0.1 s block the window ending there goes through "
+                    "the model's mel recipe and net, then the causal (or fixed-lag) robust smoother; each row "
+                    "'timestamp,x,y,z,std_x,std_y,std_z' is written and flushed at once. Statistics (latency, "
+                    "speed against real time, threads) go to stderr at the end.")
+    track.add_argument("--audio", required=True, help="'-' (raw PCM on stdin), a .wav file, or a recording")
+    model = track.add_mutually_exclusive_group(required=True)
+    model.add_argument("--ckpt_path", help="a project checkpoint (.ckpt of aaute fit)")
+    model.add_argument("--weights", help="registered weights (aaute weights list) or a weights file")
+    track.add_argument("--recipe", help="mel recipe (default: the checkpoint's data settings, else the net's own)")
+    track.add_argument("--window-seconds", type=float, help="audio seconds per window (default: the checkpoint's, "
+                                                            "else 2)")
+    track.add_argument("--lag", type=float, default=0.0, help="seconds of future each smoothed position may use "
+                                                              "(0: causal, the default)")
+    track.add_argument("--preset", choices=["robust"], default="robust", help="robust smoother preset")
+    track.add_argument("--realtime", action="store_true", help="recordings: deliver blocks at real-time pace")
+    pcm = track.add_argument_group("raw PCM on stdin and WAV files")
+    pcm.add_argument("--channels", type=int, help="interleaved channels of the PCM stream")
+    pcm.add_argument("--rate", type=float, help="sample rate of the PCM stream (Hz)")
+    pcm.add_argument("--format", choices=["s16le", "s32le", "f32le"], default="s16le", help="PCM sample format")
+    pcm.add_argument("--mic-positions", type=Path,
+                     help="text file of one 'x y z' row (m) per channel (default: the simulator's array)")
+    pcm.add_argument("--t0", type=float, default=0.0, help="time of the first sample (s; default 0)")
+    pcm.add_argument("--stall-timeout", type=float, default=5.0,
+                     help="seconds without data after which the stream counts as ended (default 5)")
+    out = track.add_argument_group("output (default: CSV on stdout)")
+    out.add_argument("--out", type=Path, help="CSV file (written beside it, renamed into place at the end)")
+    out.add_argument("--mcap-out", type=Path, help="MCAP file of JSON track points")
+    out.add_argument("--topic", default="/track/position", help="topic of --mcap-out (default /track/position)")
+    out.add_argument("--stdout", action="store_true", help="also write CSV to stdout when writing files")
+    out.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    track.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    track.add_argument("--batch", type=int, default=1,
+                       help="windows per net call (default 1: each line as soon as its block is in); more speed up "
+                            "a replay and delay each line by up to that many blocks")
+    track.set_defaults(func=_cmd_track)
+
+
 def add_commands(sub: argparse._SubParsersAction) -> None:
-    """The zoo's and the datamodules' argparse subcommands (simulate, info, convert, label, smooth)."""
+    """The zoo's and the datamodules' argparse subcommands (simulate, info, convert, label, smooth, track)."""
     sim = sub.add_parser("simulate", help="simulate MMAUD-like recordings (MCAP)")
     sim.add_argument("--out", required=True, type=Path, help="output directory")
     sim.add_argument("--sequences", type=int, default=5)
@@ -258,6 +306,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
     smooth.add_argument("--overwrite", action="store_true", help="replace an existing DST (never SRC itself)")
     smooth.set_defaults(func=_cmd_smooth)
 
+    _add_track_command(sub)
     from zoo import weights_cli
 
     weights_cli.add_commands(sub)  # weights list|register, import-checkpoint, export

@@ -52,3 +52,13 @@ def test_monotonic_check_names_the_stream():
 def test_unknown_drone_is_rejected():
     with pytest.raises(RecordingError, match="unknown drone type"):
         Recording("s", "bebop")
+
+
+def test_window_ends_on_the_sample_boundary_of_a_rounded_absolute_stamp():
+    """Stamps t0 + k / 10 read back from nanoseconds near 1.7e9 s must end their window on sample k * 4800."""
+    fs, t0 = 48000.0, 1692845357.0
+    audio = ArrayAudio(np.zeros((1, 480000), np.float32), fs, t0=t0, mic_positions=np.zeros((1, 3)))
+    stamps = ns_to_seconds(seconds_to_ns(t0 + np.arange(100) * 0.1))
+    assert [audio.sample_index(t) for t in stamps] == [k * 4800 for k in range(100)]
+    assert audio.sample_index(t0 + 0.5 / fs) == 0  # half a sample in: still the sample before
+    assert audio.sample_index(t0 + 1.0 / fs - 3e-6) == 0  # 3 us short of sample 1 (0.14 samples) is not sample 1
