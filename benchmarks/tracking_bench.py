@@ -90,7 +90,7 @@ def stage_times(model, audio: np.ndarray, rate: float) -> dict[str, float]:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=60.0, help="length of the simulated recording")
-    parser.add_argument("--data", type=Path, default=Path("tracking_bench_data"), help="where it is kept")
+    parser.add_argument("--data", type=Path, default=Path("demo_out/tracking_bench"), help="where it is kept")
     parser.add_argument("--weights", type=Path, help="student weights (default: fixed random weights, seed 0)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--batch", type=int, nargs="+", default=[1, 8], help="windows per net call, one run each")

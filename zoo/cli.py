@@ -149,6 +149,27 @@ def check_output(src: Path, dst: Path, overwrite: bool) -> None:
         raise FileExistsError(f"{dst} already exists; refusing to overwrite it (use --overwrite)")
 
 
+def _cmd_audio(args: argparse.Namespace) -> int:
+    from datamodules.audio_export import write_pcm, write_wav
+    from datamodules.formats import open_recording
+
+    audio = open_recording(args.recording, **_reader_options(args)).audio
+    if audio is None:
+        raise ConfigError(f"{args.recording}: the recording holds no microphone audio")
+    shape = (f"{audio.num_channels} channels, {audio.sample_rate:g} Hz, {args.format}, "
+             f"{audio.duration:.1f} s from t0 = {audio.t0!r}")
+    if str(args.out) == "-":
+        log.info("%s: raw PCM to stdout (%s); read it with: aaute track --audio - --channels %d --rate %g "
+                 "--format %s --t0 %r", args.recording, shape, audio.num_channels, audio.sample_rate, args.format,
+                 audio.t0)
+        write_pcm(audio, sys.stdout.buffer, args.format)
+        return 0
+    check_output(args.recording, args.out, args.overwrite)
+    write_wav(audio, args.out, args.format, overwrite=args.overwrite)
+    log.info("%s -> %s (%s)", args.recording, args.out, shape)
+    return 0
+
+
 def _cmd_smooth(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
@@ -290,6 +311,15 @@ def add_commands(sub: argparse._SubParsersAction) -> None:
                      help="teacher parameter (a TeacherConfig field), repeatable, e.g. --param max_gap_s=2")
     _add_reader_options(lab)
     lab.set_defaults(func=_cmd_label)
+
+    audio = sub.add_parser("audio", help="a recording's microphone audio as a WAV file or raw PCM on stdout")
+    audio.add_argument("recording", type=Path, help="a recording of any layout")
+    audio.add_argument("--out", required=True, type=Path, help="a .wav file, or - for raw interleaved PCM on stdout")
+    audio.add_argument("--format", choices=["s16le", "s32le", "f32le"], default="s16le",
+                       help="sample format (default s16le; WAV: s16le or s32le)")
+    audio.add_argument("--overwrite", action="store_true", help="replace an existing WAV file")
+    _add_reader_options(audio)
+    audio.set_defaults(func=_cmd_audio)
 
     smooth = sub.add_parser("smooth", help="smooth a track CSV (timestamp,x,y,z) and add per-axis std")
     smooth.add_argument("src", type=Path)
