@@ -48,6 +48,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
+from scipy.linalg import lapack
 from scipy.optimize import minimize_scalar
 from scipy.special import digamma, gammaln
 
@@ -850,114 +851,103 @@ class OnlineSmoother:
     ``update(t, xyz)`` takes frames in time order and returns the rows that are ready: with ``lag`` L a
     frame is emitted once a later frame beyond its time plus L arrives (at lag 0 at once), estimated from
     the frames up to its time plus L. ``flush()`` emits the rest. The prior mean is the first frame's
-    position (there is no track mean online). Work per frame is bounded by the frames within the lag.
+    position (there is no track mean online).
+
+    Each update re-solves a window: the frames of the last ``lag + window`` seconds, given the filtered
+    state before them (the frames that left the window, each with its final weight). The window's
+    posterior is the dense GP form of the state-space model, Cholesky of (C + diag(r / w)) per axis
+    with C the Matern kernel plus the committed state's correction, a few variational iterations per
+    update; the older frames keep their weights from the last update (warm start), the new frame starts
+    at weight 1. A frame that looked like an outlier when it arrived is revised with the frames after it,
+    so the filter does not lock out a track that really moved. Work per frame is bounded by the window.
 
     Args:
         preset: a name of :data:`ROBUST_PRESETS` or hyperparameters.
         lag: seconds of future each estimate may use (0: causal filter).
-        iterations: variational sweeps per update over the window.
+        iterations: variational iterations per update over the window.
         calibrate: multiply the std by the preset's ``std_scale`` factor at this lag.
         window: seconds of already emitted frames re-solved with each update besides the lag (their
             weights are revised with newer data, which steadies the state carried forward; their emitted
-            rows never change). The work per frame grows with ``lag + window``.
+            rows never change). The work per frame grows with ``(lag + window)^3``.
     """
 
     def __init__(self, preset: str | RobustHyperparameters | None = "robust", lag: float = 0.0,
-                 iterations: int = 2, calibrate: bool = True, window: float = 0.0):
+                 iterations: int = 3, calibrate: bool = True, window: float = 5.0):
         if not (math.isfinite(lag) and lag >= 0):
             raise ValueError(f"lag must be finite seconds >= 0, got {lag!r}")
         if not (math.isfinite(window) and window >= 0):
             raise ValueError(f"window must be finite seconds >= 0, got {window!r}")
+        if int(iterations) < 1:
+            raise ValueError(f"iterations must be at least 1, got {iterations!r}")
         self.window = float(window)
         self.hyperparameters = _resolve(preset, {})
         self.lag = float(lag)
         self.iterations = int(iterations)
         self.scale = self.hyperparameters.scale_for(self.lag) if calibrate else 1.0
         ls, os_, noise = self.hyperparameters.arrays()
-        self._ls, self._os, self._noise = ls, os_, noise
-        _, _, self._P0 = _matern52_model(np.zeros(1), ls, os_)
-        self._nil: np.ndarray | None = None
+        self._noise = noise
+        self._lam = math.sqrt(5.0) / ls
+        self._outputscale = os_
+        _, _, P0 = _matern52_model(np.zeros(1), ls, os_)
+        self._P0 = P0
+        # F + lam I of each axis (nilpotent) and its square: exp(F d) = exp(-lam d) (I + N d + N^2 d^2 / 2)
+        self._nil = np.zeros((3, 3, 3))
+        self._nil[:, 0, 0] = self._nil[:, 1, 1] = self._lam
+        self._nil[:, 0, 1] = self._nil[:, 1, 2] = 1.0
+        self._nil[:, 2] = np.stack([-(self._lam**3), -3.0 * self._lam**2, -2.0 * self._lam], -1)
+        self._nil2 = self._nil @ self._nil
         self._centre: np.ndarray | None = None
         self._m = np.zeros((3, 3))  # committed filtered state (axis, state)
-        self._P = self._P0.copy()
+        self._P = P0.copy()
         self._t: float | None = None  # time of the committed state (None: the prior)
-        #: the window: time, centred position, transition from the step before (None: from the prior)
-        self._frames: list[tuple[float, np.ndarray, tuple[np.ndarray, np.ndarray] | None]] = []
+        #: the window: (time, centred position) of each frame, oldest first, and their weights
+        self._frames: list[tuple[float, np.ndarray]] = []
         self._weights: list[float] = []
         self._solution: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._filtered: tuple[np.ndarray, np.ndarray] | None = None
         self._emitted = 0  # frames of the window already emitted
 
-    def _transition(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        """exp(F dt) and the process noise for one step (the closed form of ``_matern52_model``)."""
-        if self._nil is None:
-            lam = np.sqrt(5.0) / self._ls
-            self._lam = lam
-            A1, _, _ = _matern52_model(np.array([1.0]), self._ls, self._os)
-            # recover N = F + lam I and N^2 from the model once: A(d) = exp(-lam d) (I + N d + N^2 d^2 / 2)
-            A2, _, _ = _matern52_model(np.array([2.0]), self._ls, self._os)
-            B1 = A1[0] * np.exp(lam)[:, None, None] - np.eye(3)
-            B2 = A2[0] * np.exp(2 * lam)[:, None, None] - np.eye(3)
-            self._nil2 = B2 - 2 * B1  # N^2
-            self._nil = B1 - self._nil2 / 2
-        A = np.exp(-self._lam * dt)[:, None, None] * (np.eye(3) + self._nil * dt + self._nil2 * (dt * dt / 2.0))
-        return A, self._P0 - A @ self._P0 @ A.transpose(0, 2, 1)
+    def _transition(self, dt: np.ndarray) -> np.ndarray:
+        """exp(F dt) per step and axis, (len(dt), 3, 3, 3), in closed form."""
+        d = dt[:, None, None, None]
+        decay = np.exp(-self._lam[None, :, None, None] * d)
+        return decay * (np.eye(3) + self._nil * d + self._nil2 * (d * d / 2.0))
 
-    def _predict(self, k: int, m: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        step = self._frames[k][2]
-        if step is None:
-            return np.zeros((3, 3)), self._P0
-        A, Q = step
-        return np.einsum("bij,bj->bi", A, m), A @ P @ A.transpose(0, 2, 1) + Q
-
-    def _first_weight(self, y: np.ndarray, m: np.ndarray, P: np.ndarray) -> float:
-        """VB weight of a lone new frame against its prediction (m, P): a few scalar iterations."""
-        dof, w = self.hyperparameters.dof, 1.0
-        prior_var = P[:, 0, 0]
-        for _ in range(max(self.iterations, 1) + 2):
-            gain = prior_var / (prior_var + self._noise / w)
-            post_mean = m[:, 0] + gain * (y - m[:, 0])
-            post_var = prior_var * (1.0 - gain)
-            w = (dof + 3.0) / (dof + float((((y - post_mean) ** 2 + post_var) / self._noise).sum()))
-        return w
+    def _prior(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Prior mean (W, 3) and covariance (3, W, W) of f at the window's times, given the committed state."""
+        r = self._lam[:, None, None] * np.abs(times[:, None] - times[None, :])  # sqrt(5) |dt| / lengthscale
+        cov = self._outputscale[:, None, None] * (1.0 + r + r * r / 3.0) * np.exp(-r)
+        if self._t is None:
+            return np.zeros((len(times), 3)), cov
+        rows = self._transition(times - self._t)[:, :, 0, :].transpose(1, 0, 2)  # (axis, W, state): f's row
+        mean = (rows @ self._m[:, :, None])[:, :, 0].T
+        return mean, cov + rows @ (self._P - self._P0) @ rows.transpose(0, 2, 1)
 
     def _solve(self) -> None:
-        """Variational sweeps over the window from the committed state (sequential Kalman + RTS).
-
-        The new frame starts from its lone-frame weight; the older frames keep theirs from the last
-        update, so a couple of sweeps suffice. A window of one frame (lag 0) needs no sweep at all.
-        """
-        n = len(self._frames)
+        """Variational iterations over the window: q(f) by Cholesky per axis, then q(w)."""
         times = np.array([f[0] for f in self._frames])
-        ys = np.stack([f[1] for f in self._frames])
+        ys = np.array([f[1] for f in self._frames])
         w = np.array(self._weights)
-        sweeps = 1 if n == 1 else max(self.iterations, 1)
-        for sweep in range(sweeps):
-            mf, Pf = np.empty((n, 3, 3)), np.empty((n, 3, 3, 3))
-            mp, Pp = np.empty((n, 3, 3)), np.empty((n, 3, 3, 3))
-            m, P = self._m, self._P
-            for k in range(n):
-                m, P = self._predict(k, m, P)
-                mp[k], Pp[k] = m, P
-                if k == n - 1 and sweep == 0:
-                    w[k] = self._first_weight(ys[k], m, P)
-                gain = P[:, :, 0] / (P[:, 0, 0] + self._noise / w[k])[:, None]
-                m = m + gain * (ys[k] - m[:, 0])[:, None]
-                P = P - gain[:, :, None] * P[:, None, 0, :]
-                P = 0.5 * (P + P.transpose(0, 2, 1))
-                mf[k], Pf[k] = m, P
-            ms, Ps = mf.copy(), Pf.copy()
-            for k in range(n - 2, -1, -1):
-                A, _ = self._frames[k + 1][2]  # type: ignore[misc]
-                G = np.linalg.solve(Pp[k + 1], A @ Pf[k]).transpose(0, 2, 1)
-                ms[k] = mf[k] + np.einsum("bij,bj->bi", G, ms[k + 1] - mp[k + 1])
-                Ps[k] = Pf[k] + G @ (Ps[k + 1] - Pp[k + 1]) @ G.transpose(0, 2, 1)
-            if n > 1:
-                sq = (((ys - ms[:, :, 0]) ** 2 + Ps[:, :, 0, 0]) / self._noise).sum(axis=1)
-                w = (self.hyperparameters.dof + 3.0) / (self.hyperparameters.dof + sq)
+        prior_mean, cov = self._prior(times)
+        resid = ys - prior_mean
+        dof = self.hyperparameters.dof
+        mean, var = np.empty_like(ys), np.empty_like(ys)
+        for _ in range(self.iterations):
+            diagonal = np.arange(len(w))
+            for axis in range(3):
+                noise = self._noise[axis] / w
+                system = cov[axis].copy()
+                system[diagonal, diagonal] += noise
+                factor, info = lapack.dpotrf(system, lower=1, overwrite_a=1)
+                if info != 0:
+                    raise np.linalg.LinAlgError(f"window covariance not positive definite (dpotrf info {info})")
+                alpha, _ = lapack.dpotrs(factor, resid[:, axis], lower=1)
+                inverse, _ = lapack.dpotri(factor, lower=1, overwrite_c=1)
+                mean[:, axis] = ys[:, axis] - noise * alpha
+                var[:, axis] = noise - noise * noise * inverse[diagonal, diagonal]
+            sq = (((ys - mean) ** 2 + var) / self._noise).sum(axis=1)
+            w = (dof + 3.0) / (dof + sq)
         self._weights = list(w)
-        self._solution = (times, ms[:, :, 0], Ps[:, :, 0, 0], w)
-        self._filtered = (mf, Pf)
+        self._solution = (times, mean, var, w)
 
     def _rows(self, upto: int) -> list[OnlineRow]:
         """Emit window frames [emitted, upto) from the current solution."""
@@ -968,14 +958,25 @@ class OnlineSmoother:
         return rows
 
     def _commit(self, now: float) -> None:
-        """Freeze the emitted frames older than ``now - lag``: the committed state moves past them."""
-        if self._solution is None:
-            return
-        times = self._solution[0]
-        drop = min(self._emitted, int(np.searchsorted(times, now - self.lag - self.window, side="left")))
+        """Move the committed state past the emitted frames older than ``now - lag - window``.
+
+        Each leaves through one Kalman step with its final weight.
+        """
+        drop = 0
+        while drop < self._emitted and self._frames[drop][0] < now - self.lag - self.window:
+            drop += 1
+        for (t, y), w in zip(self._frames[:drop], self._weights[:drop], strict=True):
+            if self._t is None:
+                m, P = np.zeros((3, 3)), self._P0
+            else:
+                A = self._transition(np.array([t - self._t]))[0]
+                m = np.einsum("bij,bj->bi", A, self._m)
+                P = self._P0 - A @ (self._P0 - self._P) @ A.transpose(0, 2, 1)  # A P A^T + Q
+            gain = P[:, :, 0] / (P[:, 0, 0] + self._noise / w)[:, None]
+            self._m = m + gain * (y - m[:, 0])[:, None]
+            P = P - gain[:, :, None] * P[:, None, 0, :]
+            self._P, self._t = 0.5 * (P + P.transpose(0, 2, 1)), t
         if drop:
-            mf, Pf = self._filtered  # type: ignore[misc]
-            self._m, self._P, self._t = mf[drop - 1], Pf[drop - 1], float(times[drop - 1])
             del self._frames[:drop]
             del self._weights[:drop]
             self._emitted -= drop
@@ -1000,9 +1001,7 @@ class OnlineSmoother:
         if self._solution is not None:  # frames whose lag has now passed, from the solution before this one
             rows += self._rows(int(np.searchsorted(self._solution[0], t - self.lag, side="left")))
         self._commit(t)
-        previous = self._frames[-1][0] if self._frames else self._t
-        step = self._transition(t - previous) if previous is not None else None
-        self._frames.append((t, y - self._centre, step))
+        self._frames.append((t, y - self._centre))
         self._weights.append(1.0)
         self._solve()
         rows += self._rows(int(np.searchsorted(self._solution[0], t - self.lag, side="right")))  # type: ignore[index]

@@ -195,19 +195,44 @@ def test_the_online_smoother_emits_each_frame_once_in_order_and_flush_finishes()
 
 
 def test_causal_mode_emits_at_once_with_bounded_window():
-    t, y, _, _ = track_with_outliers(60, seed=8)
-    online = OnlineSmoother(HP, lag=0.0)
+    t, y, _, _ = track_with_outliers(120, seed=8)
+    online = OnlineSmoother(HP, lag=0.0, window=0.0)
     for i in range(len(t)):
         rows = online.update(t[i], y[i])
         assert [r.timestamp for r in rows] == [t[i]]
         assert len(online._frames) == 1  # nothing of the past is re-solved
-    lagged = OnlineSmoother(HP, lag=0.5)
+    lagged = OnlineSmoother(HP, lag=0.5, window=0.0)
     for i in range(len(t)):
         lagged.update(t[i], y[i])
         assert len(lagged._frames) <= 8
     revised = OnlineSmoother(HP, lag=0.0, window=1.0)  # past weights revised, emitted rows final
     rows = [row for i in range(len(t)) for row in revised.update(t[i], y[i])]
     assert [r.timestamp for r in rows] == list(t) and len(revised._frames) <= 12
+    default = OnlineSmoother(HP)  # a 5 s window: the work per frame stops growing once it is full
+    sizes = [len(default._frames) for i in range(len(t)) if default.update(t[i], y[i]) is not None]
+    assert max(sizes) <= 53 and sizes[-1] >= 48
+
+
+def test_the_window_solve_is_the_exact_posterior_given_the_weights():
+    """One variational iteration: the window's q(f) equals the Kalman smoother over every frame so far,
+    with each committed frame's final weight and the window's weights from before the update."""
+    t, y, _, _ = track_with_outliers(70, seed=14)
+    online = OnlineSmoother(HP, lag=0.0, window=1.0, iterations=1)
+    last_weight: dict[float, float] = {}
+    for i in range(len(t)):
+        used = dict(last_weight)
+        online.update(t[i], y[i])
+        last_weight.update({frame[0]: w for frame, w in zip(online._frames, online._weights, strict=True)})
+    used[t[-1]] = 1.0
+    weights = np.array([used[v] for v in t])
+    batch = _Batch(t - t[0], y - y[0], np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
+    noise = HP.arrays()[2][None, :] / weights[:, None]
+    mean, var, _ = _blocked_posterior(_blocked_prior(batch, *HP.arrays()[:2]), noise)
+    times, window_mean, window_var, _ = online._solution
+    assert online._t is not None and len(times) < len(t)  # a committed state and a window after it
+    window = np.searchsorted(t, times)
+    np.testing.assert_allclose(window_mean, mean[window], atol=1e-8)
+    np.testing.assert_allclose(window_var, var[window], atol=1e-10)
 
 
 # ------------------------------------------------------------------------------------------- fitting
