@@ -120,12 +120,13 @@ class RobustHyperparameters:
 #: Gaussian model's marginal likelihood fitted the same way, -33,116 nats; 42 % of the frames end with a
 #: weight below 0.5 (nu 1.24: very heavy tails). The std calibration factors (``std_scale``, per lag) are the
 #: only use of ground truth: the 95th percentile of |truth - mean| / std over the frames and axes of all
-#: five tracks, divided by 2, for the std alone; the benchmark re-chooses them leave-one-drone-out to score
+#: five tracks, divided by 2, for the std alone (online: :class:`OnlineSmoother`'s defaults, a 5 s window
+#: and 3 iterations); the benchmark re-chooses them leave-one-drone-out to score
 #: each drone. ``python -m benchmarks.smoothing_bench --fit-preset`` recomputes all of it.
 ROBUST_PRESETS: dict[str, RobustHyperparameters] = {
     "robust": RobustHyperparameters(
         lengthscale=(5.23, 7.51, 16.2), outputscale=(2.54, 23.6, 27.7), noise=(0.00535, 0.0354, 0.0474), dof=1.24,
-        std_scale=((0.0, 2.76), (0.5, 3.68), (1.0, 4.18), (OFFLINE, 3.76)),
+        std_scale=((0.0, 2.71), (0.5, 3.41), (1.0, 3.70), (OFFLINE, 3.76)),
     ),
 }
 
