@@ -21,8 +21,9 @@ torch float64 tensors, so it is differentiable and gets exact gradients; the RTS
 Inference without gradients (the E-step, :class:`RobustSmoother`) runs the same filter and smoother in a
 blocked sequential numpy form instead (:func:`_blocked_posterior`): the scans cost about 12 small matrix
 products per step in torch's batched 3 x 3 matmul, the blocked form about 4 per step as einsums over
-contiguous vectors, which made a 1-hour track (30 variational iterations) several times faster on one
-core (``python -m benchmarks.smoothing_bench --speed-robust``). The posterior mean as a banded solve of
+contiguous vectors, which made a 1-hour track (36,000 frames, 30 variational iterations) about five
+times faster on one core (3.5 s against 18 s, ``python -m benchmarks.smoothing_bench --speed-robust
+--threads 1``). The posterior mean as a banded solve of
 the state precision (``scipy.linalg.cholesky_banded``) was measured and rejected: at 10 Hz the
 Matern-5/2 state precision is so ill-conditioned that the float64 banded solve missed the Kalman
 smoother's mean by 4-15 mm on the real tracks (still 5 um with the precision assembled in extended
