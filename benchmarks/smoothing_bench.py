@@ -7,6 +7,8 @@ lags, with the 2-sigma coverage of the ground truth. The robust smoother's std c
 chosen leave-one-drone-out (on the other four drones' ground truth, same mode) for the coverage of each
 drone; hyperparameters come from the predictions alone. ``--fit-preset`` re-learns the ``robust``
 preset. ``--speed-robust`` times the robust smoother offline on a 1-hour track and the causal update.
+``--choose-online`` scores the online smoother's (window, iterations) settings on every lag and picks
+one leave-one-drone-out; ``--window`` / ``--iterations`` set them for ``--accuracy`` and ``--speed-robust``.
 
 ``python -m benchmarks.smoothing_bench`` (no flag) measures the GP backends' speed and memory. Every case
 (backend x track length) runs in a fresh subprocess so its peak resident memory (``ru_maxrss``) is its
@@ -145,8 +147,8 @@ def _real_tracks(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.nda
     return tracks
 
 
-def _smoothed(mode: str, t: np.ndarray, pred: np.ndarray):
-    """(mean, std, weights or None) of one smoother mode, uncalibrated."""
+def _smoothed(mode: str, t: np.ndarray, pred: np.ndarray, **online):
+    """(mean, std, weights or None) of one smoother mode, uncalibrated; ``online``: OnlineSmoother options."""
     from zoo.robust_smoothing import RobustSmoother, smooth_online
     from zoo.smoothing import GPSmoother
 
@@ -155,12 +157,15 @@ def _smoothed(mode: str, t: np.ndarray, pred: np.ndarray):
     elif mode == "robust":
         track = RobustSmoother("robust", calibrate=False).smooth(t, pred)
     else:
-        track = smooth_online(t, pred, "robust", lag=float(mode.split("=")[1]), calibrate=False)
+        track = smooth_online(t, pred, "robust", lag=float(mode.split("=")[1]), calibrate=False, **online)
     return track.mean, track.std, track.weights
 
 
-def accuracy(folder: Path, lags: tuple[float, ...] = LAGS) -> str:
-    """The Markdown table of E and coverage per mode (see the module docstring)."""
+def accuracy(folder: Path, lags: tuple[float, ...] = LAGS, **online) -> str:
+    """The Markdown table of E and coverage per mode (see the module docstring).
+
+    ``online``: :class:`zoo.robust_smoothing.OnlineSmoother` options of the lag modes (default: its own).
+    """
     from zoo.robust_smoothing import ROBUST_PRESETS, calibration_factor, coverage
 
     tracks = _real_tracks(folder)
@@ -176,7 +181,7 @@ def accuracy(folder: Path, lags: tuple[float, ...] = LAGS) -> str:
             if mode == "raw":
                 results[drone] = (pred, None, None, gt)
             else:
-                results[drone] = (*_smoothed(mode, t, pred), gt)
+                results[drone] = (*_smoothed(mode, t, pred, **online), gt)
         seconds = time.perf_counter() - start
         errors = {d: np.linalg.norm(r[0] - r[3], axis=1) for d, r in results.items()}
         pooled = float(np.concatenate(list(errors.values())).mean())
@@ -205,6 +210,50 @@ def accuracy(folder: Path, lags: tuple[float, ...] = LAGS) -> str:
         cells.append(f"{seconds:.1f}")
         lines.append("| " + " | ".join(cells) + " |")
         print(lines[-1], file=sys.stderr, flush=True)
+    return "\n".join(lines)
+
+
+def choose_online(folder: Path, windows: tuple[float, ...] = (0.0, 3.0, 5.0, 8.0),
+                  iterations: tuple[int, ...] = (2, 3), lags: tuple[float, ...] = LAGS) -> str:
+    """Pooled E of the online smoother per (window, iterations) and lag, and a leave-one-drone-out choice.
+
+    For each drone the setting is the one with the lowest pooled E over the other four drones (summed
+    over the lags, since one default serves every lag); the drone is then scored with it. The table
+    says which setting each drone's four others picked and what the picks score pooled.
+    """
+    from zoo.robust_smoothing import smooth_online
+
+    tracks = _real_tracks(folder)
+    settings = [(w, i) for w in windows for i in iterations]
+    # sums[setting][lag][drone] = (sum of E, frames)
+    sums: dict = {}
+    for window, its in settings:
+        for lag in lags:
+            for drone, (t, pred, gt) in tracks.items():
+                track = smooth_online(t, pred, "robust", lag=lag, window=window, iterations=its, calibrate=False)
+                error = np.linalg.norm(track.mean - gt, axis=1)
+                sums.setdefault((window, its), {}).setdefault(lag, {})[drone] = (float(error.sum()), len(error))
+
+    def pooled(setting, lag, drones) -> float:
+        cells = [sums[setting][lag][d] for d in drones]
+        return sum(c[0] for c in cells) / sum(c[1] for c in cells)
+
+    header = ["window s", "iterations", *[f"lag {lag:g} s: pooled E" for lag in lags]]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for setting in settings:
+        lines.append("| " + " | ".join([f"{setting[0]:g}", str(setting[1]),
+                                        *[f"{pooled(setting, lag, DRONES_V1):.3f}" for lag in lags]]) + " |")
+    picks = {}
+    for drone in DRONES_V1:
+        others = [d for d in DRONES_V1 if d != drone]
+        picks[drone] = min(settings, key=lambda st: sum(pooled(st, lag, others) for lag in lags))
+    lines.append("")
+    lines.append("leave-one-drone-out picks (window s, iterations): "
+                 + ", ".join(f"{d} {picks[d][0]:g}/{picks[d][1]}" for d in DRONES_V1))
+    for lag in lags:
+        total = sum(sums[picks[d]][lag][d][0] for d in DRONES_V1)
+        frames = sum(sums[picks[d]][lag][d][1] for d in DRONES_V1)
+        lines.append(f"lag {lag:g} s: pooled E of the left-out drones with their picks {total / frames:.3f}")
     return "\n".join(lines)
 
 
@@ -240,8 +289,11 @@ def fit_preset(folder: Path, rounds: int = 40) -> str:
     return "\n".join(lines)
 
 
-def speed_robust(threads: int = 1, points: int = 36_000) -> str:
-    """Seconds to smooth a ``points`` track offline and ms per causal update (median over 2,000 frames)."""
+def speed_robust(threads: int = 1, points: int = 36_000, **options) -> str:
+    """Seconds to smooth a ``points`` track offline and ms per online update (median over 2,000 frames).
+
+    ``options``: :class:`zoo.robust_smoothing.OnlineSmoother` settings (default: its own).
+    """
     import torch
 
     from zoo.robust_smoothing import OnlineSmoother, RobustSmoother
@@ -256,14 +308,15 @@ def speed_robust(threads: int = 1, points: int = 36_000) -> str:
     lines = [f"robust offline, {points} points: {offline:.2f} s ({smoother.last_fit.iterations} iterations, "
              f"{threads} torch thread(s))"]
     for lag in LAGS:
-        online = OnlineSmoother("robust", lag=lag)
+        online = OnlineSmoother("robust", lag=lag, **options)
         times = []
         for i in range(2000):
             start = time.perf_counter()
             online.update(t[i], xyz[i])
             times.append(time.perf_counter() - start)
-        lines.append(f"online lag {lag:g} s: median {np.median(times) * 1e3:.3f} ms, "
-                     f"95th percentile {np.quantile(times, 0.95) * 1e3:.3f} ms per frame")
+        lines.append(f"online lag {lag:g} s (window {online.window:g} s, {online.iterations} iterations): median "
+                     f"{np.median(times) * 1e3:.3f} ms, 95th percentile {np.quantile(times, 0.95) * 1e3:.3f} ms "
+                     "per frame")
     return "\n".join(lines)
 
 
@@ -272,6 +325,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--accuracy", action="store_true", help="E and coverage of every smoother on MMAUD V1")
     parser.add_argument("--fit-preset", action="store_true", help="re-learn the robust preset (minutes)")
     parser.add_argument("--speed-robust", action="store_true", help="time the robust smoother (1-hour track)")
+    parser.add_argument("--choose-online", action="store_true",
+                        help="online smoother's E per (window, iterations), leave-one-drone-out pick (minutes)")
+    parser.add_argument("--window", type=float, default=None, help="online smoother's window, s (default: its own)")
+    parser.add_argument("--iterations", type=int, default=None,
+                        help="online smoother's variational iterations per update (default: its own)")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data"
                         / "mmaud_v1_tame", help="folder of the MMAUD V1 TAME CSVs")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 36000])
@@ -281,17 +339,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--case", nargs=4, metavar=("TRACK", "PRESET", "BACKEND", "THREADS"),
                         help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    if args.accuracy or args.fit_preset or args.speed_robust:
+    if args.accuracy or args.fit_preset or args.speed_robust or args.choose_online:
         import torch
 
+        from zoo.robust_smoothing import OnlineSmoother
+
         torch.set_num_threads(args.threads)
+        online = {k: v for k, v in (("window", args.window), ("iterations", args.iterations)) if v is not None}
         if args.fit_preset:
             print(fit_preset(args.data))
+        if args.choose_online:
+            print(f"MMAUD V1 TAME tracks, online smoother settings, {args.threads} torch thread(s)\n")
+            print(choose_online(args.data))
         if args.accuracy:
-            print(f"MMAUD V1 TAME tracks, {args.threads} torch thread(s)\n")
-            print(accuracy(args.data))
+            used = OnlineSmoother("robust", **online)
+            print(f"MMAUD V1 TAME tracks, {args.threads} torch thread(s); lag modes: window {used.window:g} s, "
+                  f"{used.iterations} iterations per update\n")
+            print(accuracy(args.data, **online))
         if args.speed_robust:
-            print(speed_robust(args.threads))
+            print(speed_robust(args.threads, **online))
         return 0
     if args.case:
         track, preset, backend, threads = args.case

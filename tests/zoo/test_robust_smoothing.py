@@ -12,6 +12,8 @@ from zoo.robust_smoothing import (
     RobustHyperparameters,
     RobustSmoother,
     _Batch,
+    _blocked_posterior,
+    _blocked_prior,
     _infer,
     _posterior,
     calibration_factor,
@@ -56,6 +58,46 @@ def test_gaussian_weights_reproduce_the_exact_matern_state_space_smoother_and_tr
     mean_r, var_r = _statespace_posterior(hp, t - t[0], y[::-1], t - t[0])  # the second track alone
     np.testing.assert_allclose(m2[n:].numpy(), mean_r, atol=1e-9)
     np.testing.assert_allclose(v2[n:].numpy(), var_r, atol=1e-9)
+
+
+@pytest.mark.parametrize("blocks", [None, 1, 4, 1000])
+def test_the_blocked_numpy_posterior_equals_the_torch_scans(blocks):
+    """Two tracks, unobserved steps, a repeated time and uneven weights: same means, variances, likelihood."""
+    rng = np.random.default_rng(21)
+    n = 301
+    t = np.cumsum(rng.uniform(0.05, 0.15, n))
+    t[40] = t[39]  # a step of length zero
+    start = np.zeros(n, dtype=bool)
+    start[[0, 170]] = True
+    batch = _Batch(t - t[0], rng.normal(0, 2, (n, 3)), rng.uniform(size=n) > 0.15, start)
+    w = rng.uniform(0.02, 1.5, n)
+    with torch.no_grad():
+        mean, var, loglik = _posterior(batch, HP, w)
+    prior = _blocked_prior(batch, *HP.arrays()[:2], blocks=blocks)
+    noise = HP.arrays()[2][None, :] / np.where(batch.observed, w, 1.0)[:, None]
+    mean_b, var_b, loglik_b = _blocked_posterior(prior, noise)
+    np.testing.assert_allclose(mean_b, mean.numpy(), atol=1e-10)
+    np.testing.assert_allclose(var_b, var.numpy(), atol=1e-12)
+    assert loglik_b == pytest.approx(float(loglik), rel=1e-12)
+    with torch.no_grad():
+        mf, Pf, _ = _posterior(batch, HP, w, smooth=False)
+    mf_b, Pf_b, _ = _blocked_posterior(prior, noise, smooth=False)
+    np.testing.assert_allclose(mf_b, mf.numpy(), atol=1e-10)
+    np.testing.assert_allclose(Pf_b, Pf.numpy(), atol=1e-10)
+
+
+def test_variational_inference_gives_the_same_fit_with_either_engine():
+    t, y, _, _ = track_with_outliers(400, seed=22)
+    batch = _Batch(t - t[0], y - y.mean(0), np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
+    blocked = _infer(batch, HP, engine="blocked")
+    scan = _infer(batch, HP, engine="scan")
+    assert blocked.iterations == scan.iterations
+    np.testing.assert_allclose(blocked.mean, scan.mean, atol=1e-9)
+    np.testing.assert_allclose(blocked.var, scan.var, atol=1e-12)
+    np.testing.assert_allclose(blocked.weights, scan.weights, atol=1e-9)
+    assert blocked.elbo == pytest.approx(scan.elbo, rel=1e-10)
+    with pytest.raises(ValueError, match="engine"):
+        _infer(batch, HP, engine="nope")
 
 
 def test_robust_smoother_ignores_outliers_and_the_gaussian_one_does_not():
@@ -153,19 +195,44 @@ def test_the_online_smoother_emits_each_frame_once_in_order_and_flush_finishes()
 
 
 def test_causal_mode_emits_at_once_with_bounded_window():
-    t, y, _, _ = track_with_outliers(60, seed=8)
-    online = OnlineSmoother(HP, lag=0.0)
+    t, y, _, _ = track_with_outliers(120, seed=8)
+    online = OnlineSmoother(HP, lag=0.0, window=0.0)
     for i in range(len(t)):
         rows = online.update(t[i], y[i])
         assert [r.timestamp for r in rows] == [t[i]]
         assert len(online._frames) == 1  # nothing of the past is re-solved
-    lagged = OnlineSmoother(HP, lag=0.5)
+    lagged = OnlineSmoother(HP, lag=0.5, window=0.0)
     for i in range(len(t)):
         lagged.update(t[i], y[i])
         assert len(lagged._frames) <= 8
     revised = OnlineSmoother(HP, lag=0.0, window=1.0)  # past weights revised, emitted rows final
     rows = [row for i in range(len(t)) for row in revised.update(t[i], y[i])]
     assert [r.timestamp for r in rows] == list(t) and len(revised._frames) <= 12
+    default = OnlineSmoother(HP)  # a 5 s window: the work per frame stops growing once it is full
+    sizes = [len(default._frames) for i in range(len(t)) if default.update(t[i], y[i]) is not None]
+    assert max(sizes) <= 53 and sizes[-1] >= 48
+
+
+def test_the_window_solve_is_the_exact_posterior_given_the_weights():
+    """One variational iteration: the window's q(f) equals the Kalman smoother over every frame so far,
+    with each committed frame's final weight and the window's weights from before the update."""
+    t, y, _, _ = track_with_outliers(70, seed=14)
+    online = OnlineSmoother(HP, lag=0.0, window=1.0, iterations=1)
+    last_weight: dict[float, float] = {}
+    for i in range(len(t)):
+        used = dict(last_weight)
+        online.update(t[i], y[i])
+        last_weight.update({frame[0]: w for frame, w in zip(online._frames, online._weights, strict=True)})
+    used[t[-1]] = 1.0
+    weights = np.array([used[v] for v in t])
+    batch = _Batch(t - t[0], y - y[0], np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
+    noise = HP.arrays()[2][None, :] / weights[:, None]
+    mean, var, _ = _blocked_posterior(_blocked_prior(batch, *HP.arrays()[:2]), noise)
+    times, window_mean, window_var, _ = online._solution
+    assert online._t is not None and len(times) < len(t)  # a committed state and a window after it
+    window = np.searchsorted(t, times)
+    np.testing.assert_allclose(window_mean, mean[window], atol=1e-8)
+    np.testing.assert_allclose(window_var, var[window], atol=1e-10)
 
 
 # ------------------------------------------------------------------------------------------- fitting
@@ -324,3 +391,19 @@ def test_tracks_of_one_to_three_frames(n):
     online = smooth_online(t, y, lag=1.0)
     for track in (offline, online):
         assert track.mean.shape == (n, 3) and np.all(np.isfinite(track.mean)) and np.all(np.isfinite(track.std))
+
+
+def test_the_blocked_engine_reproduces_the_scan_engine_on_a_real_track(shared_data):
+    """MMAUD V1 Mavic 3 with TAME's predictions, the shipped preset, 30 iterations: within 1e-6 m."""
+    from zoo.smoothing import read_track_csv
+
+    path = shared_data / "mmaud_v1_tame" / "Mavic3_pred.csv"
+    if not path.is_file():
+        pytest.skip(f"real MMAUD V1 / TAME track not found at {path}")
+    t, y = read_track_csv(path)
+    batch = _Batch(t - t[0], y - y.mean(0), np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
+    hp = ROBUST_PRESETS["robust"]
+    blocked, scan = _infer(batch, hp, engine="blocked"), _infer(batch, hp, engine="scan")
+    assert blocked.iterations == scan.iterations == 30
+    np.testing.assert_allclose(blocked.mean, scan.mean, atol=1e-6)
+    np.testing.assert_allclose(np.sqrt(blocked.var), np.sqrt(scan.var), atol=1e-6)
