@@ -260,11 +260,10 @@ class SRPPhat(TrajectoryNet):
         return torch.where(outside, torch.full_like(columns, -1), columns)  # -1: the zero column appended
 
     def _gather(self, flat: torch.Tensor, columns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-        """Weighted mean over terms of ``flat`` (N x columns, a zero column last) at ``columns`` (N x K x T or K x T)."""
-        if columns.dim() == 2:
-            values = flat[:, columns]
-        else:
-            values = flat[torch.arange(flat.shape[0])[:, None, None], columns]
+        """Weighted mean over terms of ``flat`` (N x columns, a zero column last) at ``columns``
+        (N x K x T or K x T)."""
+        rows = slice(None) if columns.dim() == 2 else torch.arange(flat.shape[0])[:, None, None]
+        values = flat[rows, columns]
         return values @ (weights / weights.sum())
 
     def _exact(self, correlation: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
