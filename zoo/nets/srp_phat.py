@@ -74,12 +74,13 @@ class SRPPhat(TrajectoryNet):
         candidates: int = 32,
         frame_candidates: int = 4,
         false_alarm: float = 0.01,
-        null_frames: int = 1000,
+        null_frames: int = 3000,
         hold_seconds: float = 3.0,
         ground_height: float | None = 0.0,
         reflection_weight: float = 1.0,
         refine_levels: int = 4,
         fit_delays: bool = True,
+        min_range: float = 4.0,
         input_recipes: dict[str, str] | None = None,
     ):
         """Args:
@@ -103,6 +104,8 @@ class SRPPhat(TrajectoryNet):
             refine_levels: per frame, levels of 27-point refinement (from ``2 ** (levels - 1) * fine_step``
                 down to ``fine_step``) on the exact multipath response after the delay fit.
             fit_delays: fit each frame's candidates to its direct pair delays (Gauss-Newton) first.
+            min_range: points closer than this to the microphones' centre (m) score 0: the drone keeps
+                clear of the rig, and the diffuse ambient's coherence makes false peaks inside the array.
         """
         super().__init__(in_channels, input_recipes=input_recipes)
         self.recipe = phase_recipe(self.inputs["audio_phase"])
@@ -121,6 +124,7 @@ class SRPPhat(TrajectoryNet):
         self.reflection_weight = float(reflection_weight)
         self.refine_levels = int(refine_levels)
         self.fit_delays = bool(fit_delays)
+        self.min_range = float(min_range)
         self._thresholds: dict[bytes, float] = {}
         self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._tracks: dict[int, dict] = {}  #: sequence index -> hold/fallback memory
@@ -195,6 +199,12 @@ class SRPPhat(TrajectoryNet):
         shape = (*points.shape[:-1], len(first))
         return position.reshape(shape), gradient.reshape(shape)
 
+    def _near(self, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
+        """Whether points (... x 3) lie within ``min_range`` of the microphones' centre (... x 1): no drone
+        flies inside the array, and there the diffuse ambient's coherence (all delays near zero) peaks."""
+        centre = mics.mean(dim=0).to(points.dtype)
+        return (torch.linalg.vector_norm(points - centre, dim=-1) < self.min_range)[..., None]
+
     def _distinct(self, position: torch.Tensor, channels: int) -> torch.Tensor:
         """Which terms (... x terms, as :meth:`_terms` orders them) lie apart from the pair's earlier terms.
 
@@ -255,7 +265,7 @@ class SRPPhat(TrajectoryNet):
         level = torch.bucketize(width.ceil(), torch.tensor(POOL_WIDTHS, dtype=width.dtype))
         level = level.clamp(max=len(POOL_WIDTHS) - 1)
         index = position.round().long()
-        outside = (index < 0) | (index >= lags) | ~self._distinct(position, mics.shape[0])
+        outside = (index < 0) | (index >= lags) | ~self._distinct(position, mics.shape[0]) | self._near(points, mics)
         columns = (level * pairs + rows) * lags + index.clamp(0, lags - 1)
         return torch.where(outside, torch.full_like(columns, -1), columns)  # -1: the zero column appended
 
@@ -278,6 +288,7 @@ class SRPPhat(TrajectoryNet):
         batch = torch.arange(correlation.shape[0])[:, None, None]
         a, b = correlation[batch, rows, low], correlation[batch, rows, low + 1]
         inside = (position >= 0) & (position <= lags - 1) & self._distinct(position, mics.shape[0])
+        inside = inside & ~self._near(points, mics)
         values = torch.where(inside, a + frac * (b - a), torch.zeros((), dtype=a.dtype))
         return values @ (weights / weights.sum()).to(values.dtype)
 
@@ -299,12 +310,16 @@ class SRPPhat(TrajectoryNet):
     def _clamp(self, points: torch.Tensor) -> torch.Tensor:
         return torch.maximum(torch.minimum(points, self.region[:, 1].float()), self.region[:, 0].float())
 
-    def _search(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags).
+    def _search(self, correlation: torch.Tensor, mics: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags),
+        and the peak point (B x 3) and response (B) of each window's mean correlation.
 
         The grid levels search each window once, on its frames' mean correlation (non-coherent, so
-        the slow drift of the delays within a window does not cancel it); then each frame fits the
-        window's best candidates to its own pair delays and keeps the one of highest exact response.
+        the slow drift of the delays within a window does not cancel it); the best candidates are
+        refined on that mean's exact response (the window's peak: it integrates a weak source over the
+        frames), and each frame fits them to its own pair delays and keeps the one of highest exact
+        response.
         """
         b, f, p, lags = correlation.shape
         corr = correlation.to(torch.float32)
@@ -317,6 +332,9 @@ class SRPPhat(TrajectoryNet):
         for _ in range(WINDOW_LEVELS):
             points, steps, _ = self._refine(flat, points, steps, mics, k)
         points = points[:, : self.frame_candidates]
+        window_points, window_scores = self._refine_exact(mean, points, mics)
+        top = window_scores.argmax(dim=1)
+        window_point, window_score = window_points[torch.arange(b), top], window_scores[torch.arange(b), top]
         # per frame: fit the candidate to the pair delays measured near its own, then refine it on the
         # exact (multipath) response
         frames = corr.reshape(b * f, p, lags)
@@ -326,7 +344,7 @@ class SRPPhat(TrajectoryNet):
         points, scores = self._refine_exact(frames, points, mics)
         top = scores.argmax(dim=1)
         rows = torch.arange(b * f)
-        return points[rows, top].reshape(b, f, 3), scores[rows, top].reshape(b, f)
+        return points[rows, top].reshape(b, f, 3), scores[rows, top].reshape(b, f), window_point, window_score
 
     def _refine_exact(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -392,8 +410,9 @@ class SRPPhat(TrajectoryNet):
 
     # ------------------------------------------------------------------------------ null statistic
 
-    def threshold(self, mics: torch.Tensor) -> float:
-        """The detection threshold for a geometry: the ``1 - false_alarm`` quantile of the null peak response."""
+    def threshold(self, mics: torch.Tensor) -> tuple[float, float]:
+        """The detection thresholds of a geometry: the ``1 - false_alarm`` quantiles of the null peak
+        response of a frame and of a window's mean correlation."""
         key = mics.numpy().tobytes()
         if key not in self._thresholds:
             sample_rate = 48000.0
@@ -405,12 +424,15 @@ class SRPPhat(TrajectoryNet):
             frames = split_frames(noise.astype(np.float32), gcc.frame, windows * frames_per_window)
             correlation = gcc.correlate(gcc.cross_spectra(frames))  # P x (windows * F) x L
             correlation = correlation.reshape(-1, windows, frames_per_window, correlation.shape[-1])
-            peaks = [self._search(correlation.permute(1, 2, 0, 3)[start:start + 64], mics)[1].flatten()
+            found = [self._search(correlation.permute(1, 2, 0, 3)[start:start + 64], mics)
                      for start in range(0, windows, 64)]
-            value = float(torch.quantile(torch.cat(peaks), 1.0 - self.false_alarm))
+            frame_peaks = torch.cat([peaks.flatten() for _, peaks, _, _ in found])
+            window_peaks = torch.cat([peaks for _, _, _, peaks in found])
+            value = (float(torch.quantile(frame_peaks, 1.0 - self.false_alarm)),
+                     float(torch.quantile(window_peaks, 1.0 - self.false_alarm)))
             self._thresholds[key] = value
-            log.info("srp_phat: detection threshold %.4f (null quantile %.3f of %d white-noise frames)", value,
-                     1.0 - self.false_alarm, self.null_frames)
+            log.info("srp_phat: detection thresholds %.4f per frame, %.4f per window (null quantile %.3f of %d "
+                     "white-noise frames)", *value, 1.0 - self.false_alarm, windows * frames_per_window)
         return self._thresholds[key]
 
     def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
@@ -439,13 +461,17 @@ class SRPPhat(TrajectoryNet):
                     raise ValueError(f"srp_phat: {mics.shape[0]} mic positions for phase features of {p} pairs")
                 if mics.numpy().tobytes() not in self._thresholds:
                     self._check_region(mics)
-                threshold = self.threshold(mics)
-                points, peak = self._search(phase[rows].detach().cpu().permute(0, 2, 1, 3), mics)
+                threshold, window_threshold = self.threshold(mics)
+                points, peak, window_point, window_peak = self._search(
+                    phase[rows].detach().cpu().permute(0, 2, 1, 3), mics)
                 hit = peak > threshold
                 masked = torch.where(hit[..., None], points, torch.full_like(points, float("nan")))
-                positions[rows] = masked.nanmedian(dim=1).values
-                scores[rows] = peak.max(dim=1).values / threshold
-                detected[rows] = hit.any(dim=1)
+                frames_hit = hit.any(dim=1)
+                # frames strong enough on their own give the median of their points; otherwise a window
+                # whose frames together stand above the null gives the peak of their mean
+                positions[rows] = torch.where(frames_hit[:, None], masked.nanmedian(dim=1).values, window_point)
+                scores[rows] = torch.maximum(peak.max(dim=1).values / threshold, window_peak / window_threshold)
+                detected[rows] = frames_hit | (window_peak > window_threshold)
         positions = self._hold_or_fallback(positions, detected, inputs.get("sequence"), inputs.get("time"))
         return {"position": positions.to(phase.dtype).to(phase.device),
                 "detection_score": scores.to(phase.dtype).to(phase.device), "detected": detected.to(phase.device)}
