@@ -44,7 +44,7 @@ def _locate(net, audio: np.ndarray) -> np.ndarray:
 @pytest.fixture(scope="module")
 def net():
     torch.set_num_threads(1)
-    return get_model("srp_phat", null_frames=300)
+    return get_model("srp_phat", null_windows=60)
 
 
 def test_phase_recipe_peaks_at_the_geometric_delay():
@@ -138,7 +138,7 @@ def test_srp_phat_holds_then_falls_back_to_the_sequence_mean(net):
 
 
 def test_a_region_far_from_the_microphones_is_warned_about(caplog):
-    net = get_model("srp_phat", region_min=(100.0, 100.0, 0.5), region_max=(120.0, 130.0, 25.0), null_frames=60)
+    net = get_model("srp_phat", region_min=(100.0, 100.0, 0.5), region_max=(120.0, 130.0, 25.0), null_windows=10)
     noise = np.random.default_rng(3).standard_normal((4, int(RECIPE.span_seconds * RATE) + 10))
     with caplog.at_level(logging.WARNING):
         net({"audio_phase": phase_features(noise, RATE, RECIPE)[None]})

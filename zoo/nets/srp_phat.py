@@ -74,7 +74,7 @@ class SRPPhat(TrajectoryNet):
         candidates: int = 32,
         frame_candidates: int = 4,
         false_alarm: float = 0.01,
-        null_frames: int = 3000,
+        null_windows: int = 300,
         hold_seconds: float = 3.0,
         ground_height: float | None = 0.0,
         reflection_weight: float = 1.0,
@@ -92,8 +92,8 @@ class SRPPhat(TrajectoryNet):
                 ``fine_step``.
             candidates: best cells kept at each level of a window's search.
             frame_candidates: best cells kept per frame before the exact last level.
-            false_alarm: share of null frames allowed over the detection threshold.
-            null_frames: frames of white noise that set the threshold.
+            false_alarm: share of null windows allowed over each detection threshold.
+            null_windows: windows of white noise that set the thresholds.
             hold_seconds: how long a sequence keeps its last detection before falling back to its mean.
             ground_height: z (m, rig frame) of the reflecting ground plane (the roof surface is z = 0 in
                 the rig frame), or None for free-field steering. Each pair's correlation then holds, besides
@@ -118,7 +118,7 @@ class SRPPhat(TrajectoryNet):
             raise ValueError(f"srp_phat region must be 3 mins below 3 maxes, got {region_min} {region_max}")
         self.coarse_step, self.fine_step = float(coarse_step), float(fine_step)
         self.frame_candidates = int(frame_candidates)
-        self.candidates, self.false_alarm, self.null_frames = int(candidates), float(false_alarm), int(null_frames)
+        self.candidates, self.false_alarm, self.null_windows = int(candidates), float(false_alarm), int(null_windows)
         self.hold_seconds = float(hold_seconds)
         self.ground_height = None if ground_height is None else float(ground_height)
         self.reflection_weight = float(reflection_weight)
@@ -310,16 +310,13 @@ class SRPPhat(TrajectoryNet):
     def _clamp(self, points: torch.Tensor) -> torch.Tensor:
         return torch.maximum(torch.minimum(points, self.region[:, 1].float()), self.region[:, 0].float())
 
-    def _search(self, correlation: torch.Tensor, mics: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags),
-        and the peak point (B x 3) and response (B) of each window's mean correlation.
+    def _search(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags).
 
         The grid levels search each window once, on its frames' mean correlation (non-coherent, so
-        the slow drift of the delays within a window does not cancel it); the best candidates are
-        refined on that mean's exact response (the window's peak: it integrates a weak source over the
-        frames), and each frame fits them to its own pair delays and keeps the one of highest exact
-        response.
+        the slow drift of the delays within a window does not cancel it); then each frame fits the
+        window's best candidates to its own pair delays, refines them on its exact response and keeps
+        the best.
         """
         b, f, p, lags = correlation.shape
         corr = correlation.to(torch.float32)
@@ -332,9 +329,6 @@ class SRPPhat(TrajectoryNet):
         for _ in range(WINDOW_LEVELS):
             points, steps, _ = self._refine(flat, points, steps, mics, k)
         points = points[:, : self.frame_candidates]
-        window_points, window_scores = self._refine_exact(mean, points, mics)
-        top = window_scores.argmax(dim=1)
-        window_point, window_score = window_points[torch.arange(b), top], window_scores[torch.arange(b), top]
         # per frame: fit the candidate to the pair delays measured near its own, then refine it on the
         # exact (multipath) response
         frames = corr.reshape(b * f, p, lags)
@@ -344,7 +338,7 @@ class SRPPhat(TrajectoryNet):
         points, scores = self._refine_exact(frames, points, mics)
         top = scores.argmax(dim=1)
         rows = torch.arange(b * f)
-        return points[rows, top].reshape(b, f, 3), scores[rows, top].reshape(b, f), window_point, window_score
+        return points[rows, top].reshape(b, f, 3), scores[rows, top].reshape(b, f)
 
     def _refine_exact(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -410,29 +404,28 @@ class SRPPhat(TrajectoryNet):
 
     # ------------------------------------------------------------------------------ null statistic
 
-    def threshold(self, mics: torch.Tensor) -> tuple[float, float]:
-        """The detection thresholds of a geometry: the ``1 - false_alarm`` quantiles of the null peak
-        response of a frame and of a window's mean correlation."""
+    def threshold(self, mics: torch.Tensor) -> float:
+        """The detection threshold of a geometry: the ``1 - false_alarm`` quantile, over null windows, of
+        the peak response of their best frame (so ``false_alarm`` is the share of null windows with a
+        detection, whatever the recipe's frame count)."""
         key = mics.numpy().tobytes()
         if key not in self._thresholds:
             sample_rate = 48000.0
             gcc = GccPhat(self.recipe, sample_rate, mics.shape[0])
             generator = np.random.default_rng(0)
             frames_per_window = self.recipe.frames
-            windows = max(1, math.ceil(self.null_frames / frames_per_window))
+            windows = self.null_windows
             noise = generator.standard_normal((mics.shape[0], windows * frames_per_window * gcc.frame))
             frames = split_frames(noise.astype(np.float32), gcc.frame, windows * frames_per_window)
             correlation = gcc.correlate(gcc.cross_spectra(frames))  # P x (windows * F) x L
             correlation = correlation.reshape(-1, windows, frames_per_window, correlation.shape[-1])
             found = [self._search(correlation.permute(1, 2, 0, 3)[start:start + 64], mics)
                      for start in range(0, windows, 64)]
-            frame_peaks = torch.cat([peaks.flatten() for _, peaks, _, _ in found])
-            window_peaks = torch.cat([peaks for _, _, _, peaks in found])
-            value = (float(torch.quantile(frame_peaks, 1.0 - self.false_alarm)),
-                     float(torch.quantile(window_peaks, 1.0 - self.false_alarm)))
+            best = torch.cat([peaks.amax(dim=1) for _, peaks in found])  # each window's best frame
+            value = float(torch.quantile(best, 1.0 - self.false_alarm))
             self._thresholds[key] = value
-            log.info("srp_phat: detection thresholds %.4f per frame, %.4f per window (null quantile %.3f of %d "
-                     "white-noise frames)", *value, 1.0 - self.false_alarm, windows * frames_per_window)
+            log.info("srp_phat: detection threshold %.4f (null quantile %.3f of the best frame of %d white-noise "
+                     "windows)", value, 1.0 - self.false_alarm, windows)
         return self._thresholds[key]
 
     def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
@@ -461,17 +454,13 @@ class SRPPhat(TrajectoryNet):
                     raise ValueError(f"srp_phat: {mics.shape[0]} mic positions for phase features of {p} pairs")
                 if mics.numpy().tobytes() not in self._thresholds:
                     self._check_region(mics)
-                threshold, window_threshold = self.threshold(mics)
-                points, peak, window_point, window_peak = self._search(
-                    phase[rows].detach().cpu().permute(0, 2, 1, 3), mics)
+                threshold = self.threshold(mics)
+                points, peak = self._search(phase[rows].detach().cpu().permute(0, 2, 1, 3), mics)
                 hit = peak > threshold
                 masked = torch.where(hit[..., None], points, torch.full_like(points, float("nan")))
-                frames_hit = hit.any(dim=1)
-                # frames strong enough on their own give the median of their points; otherwise a window
-                # whose frames together stand above the null gives the peak of their mean
-                positions[rows] = torch.where(frames_hit[:, None], masked.nanmedian(dim=1).values, window_point)
-                scores[rows] = torch.maximum(peak.max(dim=1).values / threshold, window_peak / window_threshold)
-                detected[rows] = frames_hit | (window_peak > window_threshold)
+                positions[rows] = masked.nanmedian(dim=1).values
+                scores[rows] = peak.max(dim=1).values / threshold
+                detected[rows] = hit.any(dim=1)
         positions = self._hold_or_fallback(positions, detected, inputs.get("sequence"), inputs.get("time"))
         return {"position": positions.to(phase.dtype).to(phase.device),
                 "detection_score": scores.to(phase.dtype).to(phase.device), "detected": detected.to(phase.device)}
