@@ -1,21 +1,29 @@
 """SRP-PHAT: steered-response-power localisation from the phase recipe, no training.
 
 For every short frame of a window, the steered response of a point ``g`` is the mean over
-microphone pairs of their GCC-PHAT at the pair's delay ``(|g - m_i| - |g - m_j|) / c``. The
+microphone pairs of their GCC-PHAT at the pair's delay ``(|g - m_i| - |g - m_j|) / c`` and, over a
+reflecting ground (the roof, z = 0 in the rig frame), at the three delays where the ground image of
+either path meets the other (image-direct, direct-image, image-image; terms that merge into one
+peak count once). Over a hard ground each pair's correlation holds all four peaks at similar
+heights, so a free-field search often locks onto a cross term and misplaces the range; steering
+the image terms makes them confirm the true point instead. Points within ``min_range`` of the
+array are not searched (the diffuse ambient's coherence peaks there). The
 point of highest response is found coarse to fine: a grid over the flight region, where each cell
 scores the largest correlation over the range of delays its volume spans (cells are split near the
 array, where they span more), then cubes of half the step around the best cells, all on the
 window's mean correlation; then, per frame, each of the best candidates is fitted to the delays of
 that frame's correlation peaks near its own (Gauss-Newton), which resolves range from the
-wavefront's curvature where a grid step could not, and scored exactly (linear interpolation
-between lags).
+wavefront's curvature where a grid step could not, then hill-climbed on the frame's exact
+response (linear interpolation between lags).
 
 A frame counts as a detection when its peak response exceeds a threshold set from a null statistic:
 the same search on independent white noise per microphone (nothing coherent, like channels shifted
-apart by seconds), at the quantile ``1 - false_alarm``; no ground truth is involved. A window's
-position is the coordinate-wise median of its detected frames. When no frame of a window is
-detected, the last detected position of the same sequence is held for ``hold_seconds``, then the
-mean of the sequence's detections so far is returned (the region's centre before the first one).
+apart by seconds): the quantile ``1 - false_alarm`` of the best frame of each null window, so
+``false_alarm`` is a share of windows at any frame count; no ground truth is involved. A window's
+position is the coordinate-wise median of its detected frames (optionally its latest few). When no
+frame of a window is detected, the last detected position of the same sequence is held for
+``hold_seconds``, then the mean of the sequence's detections so far (``fallback: mean``) or the
+search region's centre (``fallback: centre``) is returned (the centre before the first detection).
 That memory follows the batches' ``sequence`` and ``time`` entries (windows in time order, as the
 test and predict loaders give them); without them every window stands alone.
 
@@ -51,6 +59,8 @@ MAX_COARSE_WIDTH = 32.0
 WINDOW_LEVELS = 2
 #: the delay fit: lags searched around a candidate's delays, Gauss-Newton steps, damping, largest step (m)
 FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 8, 1e-3, 5.0
+#: what an undetected window returns once the hold has expired
+FALLBACKS = ("mean", "centre")
 
 
 @register_model("srp_phat")
@@ -81,6 +91,8 @@ class SRPPhat(TrajectoryNet):
         refine_levels: int = 4,
         fit_delays: bool = True,
         min_range: float = 4.0,
+        fallback: str = "mean",
+        latest_frames: int = 0,
         input_recipes: dict[str, str] | None = None,
     ):
         """Args:
@@ -104,6 +116,10 @@ class SRPPhat(TrajectoryNet):
             refine_levels: per frame, levels of 27-point refinement (from ``2 ** (levels - 1) * fine_step``
                 down to ``fine_step``) on the exact multipath response after the delay fit.
             fit_delays: fit each frame's candidates to its direct pair delays (Gauss-Newton) first.
+            fallback: after the hold, ``mean`` (of the sequence's detections so far) or ``centre`` (of
+                the search region: the flight region's prior, unbiased by false or near detections).
+            latest_frames: a window's position is the median of its latest this many detected frames
+                (0: of all): the drone moves, so older frames lag, but they still detect a weak source.
             min_range: points closer than this to the microphones' centre (m) score 0: the drone keeps
                 clear of the rig, and the diffuse ambient's coherence makes false peaks inside the array.
         """
@@ -125,6 +141,10 @@ class SRPPhat(TrajectoryNet):
         self.refine_levels = int(refine_levels)
         self.fit_delays = bool(fit_delays)
         self.min_range = float(min_range)
+        if fallback not in FALLBACKS:
+            raise ValueError(f"srp_phat fallback must be one of {FALLBACKS}, got {fallback!r}")
+        self.fallback = fallback
+        self.latest_frames = int(latest_frames)
         self._thresholds: dict[bytes, float] = {}
         self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._tracks: dict[int, dict] = {}  #: sequence index -> hold/fallback memory
@@ -457,6 +477,9 @@ class SRPPhat(TrajectoryNet):
                 threshold = self.threshold(mics)
                 points, peak = self._search(phase[rows].detach().cpu().permute(0, 2, 1, 3), mics)
                 hit = peak > threshold
+                if self.latest_frames:  # keep the latest detected frames only
+                    later_hits = hit.flip(1).cumsum(dim=1).flip(1)  # detected frames from each one to the end
+                    hit = hit & (later_hits <= self.latest_frames)
                 masked = torch.where(hit[..., None], points, torch.full_like(points, float("nan")))
                 positions[rows] = masked.nanmedian(dim=1).values
                 scores[rows] = peak.max(dim=1).values / threshold
@@ -480,7 +503,7 @@ class SRPPhat(TrajectoryNet):
                 track.update(last=positions[i], last_time=t, sum=track["sum"] + positions[i], count=track["count"] + 1)
             elif track["last"] is not None and t - track["last_time"] <= self.hold_seconds:
                 out[i] = track["last"]
-            elif track["count"]:
+            elif track["count"] and self.fallback == "mean":
                 out[i] = track["sum"] / track["count"]
             else:
                 out[i] = centre
