@@ -118,7 +118,11 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     torch.set_num_threads(args.threads)
-    result, arrays = run(args.data, args.recipe, json.loads(args.net_kwargs), args.cache)
+    try:
+        net_kwargs = json.loads(args.net_kwargs)
+    except json.JSONDecodeError as error:
+        parser.error(f"--net-kwargs must be a JSON object of srp_phat arguments: {error}")
+    result, arrays = run(args.data, args.recipe, net_kwargs, args.cache)
     print(format_table(result))
     if args.save is not None:
         with atomic_write(args.save) as tmp, open(tmp, "wb") as handle:
