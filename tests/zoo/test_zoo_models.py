@@ -6,9 +6,8 @@ tested without a new test file.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import math
+from pathlib import Path
 
 import pytest
 import torch
