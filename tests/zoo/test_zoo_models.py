@@ -135,7 +135,8 @@ def _short_window(config: Path) -> float:
 @pytest.mark.parametrize("config", CONFIGS, ids=lambda p: p.stem)
 def test_every_model_config_fits_and_tests_through_the_cli(config, labelled_dir, feature_cache, tmp_path):
     common = ["--config", str(config), "--data.root", str(labelled_dir), "--data.split", SPLIT,
-              "--data.window_seconds", str(_short_window(config)), "--data.batch_size", "2", "--data.cache_dir", str(feature_cache),
+              "--data.window_seconds", str(_short_window(config)), "--data.batch_size", "2",
+              "--data.cache_dir", str(feature_cache),
               "--trainer.default_root_dir", str(tmp_path), "--trainer.fast_dev_run", "true",
               "--trainer.enable_progress_bar", "false"]
     assert main(["fit", *common]) == 0
