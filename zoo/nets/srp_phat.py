@@ -294,7 +294,7 @@ class SRPPhat(TrajectoryNet):
         (N x K x T or K x T)."""
         rows = slice(None) if columns.dim() == 2 else torch.arange(flat.shape[0])[:, None, None]
         values = flat[rows, columns]
-        return values @ (weights / weights.sum())
+        return (values * (weights / weights.sum())).sum(dim=-1)
 
     def _exact(self, correlation: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
         """Steered response (N x K) of correlations (N x P x L) at ``points`` (N x K x 3): the weighted mean
@@ -310,7 +310,7 @@ class SRPPhat(TrajectoryNet):
         inside = (position >= 0) & (position <= lags - 1) & self._distinct(position, mics.shape[0])
         inside = inside & ~self._near(points, mics)
         values = torch.where(inside, a + frac * (b - a), torch.zeros((), dtype=a.dtype))
-        return values @ (weights / weights.sum()).to(values.dtype)
+        return (values * (weights / weights.sum()).to(values.dtype)).sum(dim=-1)
 
     def _refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor,
                 keep: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
