@@ -319,7 +319,15 @@ class PhaseRecipe:
 
 
 PHASE_RECIPES: dict[str, PhaseRecipe] = {
-    r.name: r for r in (PhaseRecipe("gcc_phat"), PhaseRecipe("gcc_phat_static", suppress_static=True))
+    r.name: r for r in (
+        PhaseRecipe("gcc_phat"),
+        PhaseRecipe("gcc_phat_static", suppress_static=True),
+        # the last 1.02 s / 1.96 s of the 2 s window: more frames integrate a weak source
+        PhaseRecipe("gcc_phat_1s", frames=12),
+        PhaseRecipe("gcc_phat_1s_static", frames=12, suppress_static=True),
+        PhaseRecipe("gcc_phat_2s", frames=23),
+        PhaseRecipe("gcc_phat_2s_static", frames=23, suppress_static=True),
+    )
 }
 
 

@@ -6,11 +6,14 @@ tested without a new test file.
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
+from datamodules.features import phase_recipe
 from zoo.cli import main
 from zoo.registry import get_model, list_models
 from zoo.task import TrajectoryTask
@@ -126,10 +129,18 @@ def test_missing_inputs_name_what_the_model_needs():
         task._inputs(wrong)
 
 
+def _short_window(config: Path) -> float:
+    """1 s windows keep the round trip fast, longer only where the config's phase recipe reads more."""
+    inputs = yaml.safe_load(config.read_text())["data"]["init_args"].get("inputs", {})
+    recipe = inputs.get("audio_phase")
+    return max(1.0, math.ceil(phase_recipe(recipe).span_seconds)) if recipe else 1.0
+
+
 @pytest.mark.parametrize("config", CLI_CONFIGS, ids=lambda p: getattr(p, "stem", None))
 def test_every_model_config_fits_and_tests_through_the_cli(config, labelled_dir, feature_cache, tmp_path):
     common = ["--config", str(config), "--data.root", str(labelled_dir), "--data.split", SPLIT,
-              "--data.window_seconds", "1.0", "--data.batch_size", "2", "--data.cache_dir", str(feature_cache),
+              "--data.window_seconds", str(_short_window(config)), "--data.batch_size", "2",
+              "--data.cache_dir", str(feature_cache),
               "--trainer.default_root_dir", str(tmp_path), "--trainer.fast_dev_run", "true",
               "--trainer.enable_progress_bar", "false"]
     assert main(["fit", *common]) == 0

@@ -1,21 +1,29 @@
 """SRP-PHAT: steered-response-power localisation from the phase recipe, no training.
 
 For every short frame of a window, the steered response of a point ``g`` is the mean over
-microphone pairs of their GCC-PHAT at the pair's delay ``(|g - m_i| - |g - m_j|) / c``. The
+microphone pairs of their GCC-PHAT at the pair's delay ``(|g - m_i| - |g - m_j|) / c`` and, over a
+reflecting ground (the roof, z = 0 in the rig frame), at the three delays where the ground image of
+either path meets the other (image-direct, direct-image, image-image; terms that merge into one
+peak count once). Over a hard ground each pair's correlation holds all four peaks at similar
+heights, so a free-field search often locks onto a cross term and misplaces the range; steering
+the image terms makes them confirm the true point instead. Points within ``min_range`` of the
+array are not searched (the diffuse ambient's coherence peaks there). The
 point of highest response is found coarse to fine: a grid over the flight region, where each cell
 scores the largest correlation over the range of delays its volume spans (cells are split near the
 array, where they span more), then cubes of half the step around the best cells, all on the
 window's mean correlation; then, per frame, each of the best candidates is fitted to the delays of
 that frame's correlation peaks near its own (Gauss-Newton), which resolves range from the
-wavefront's curvature where a grid step could not, and scored exactly (linear interpolation
-between lags).
+wavefront's curvature where a grid step could not, then hill-climbed on the frame's exact
+response (linear interpolation between lags).
 
 A frame counts as a detection when its peak response exceeds a threshold set from a null statistic:
 the same search on independent white noise per microphone (nothing coherent, like channels shifted
-apart by seconds), at the quantile ``1 - false_alarm``; no ground truth is involved. A window's
-position is the coordinate-wise median of its detected frames. When no frame of a window is
-detected, the last detected position of the same sequence is held for ``hold_seconds``, then the
-mean of the sequence's detections so far is returned (the region's centre before the first one).
+apart by seconds): the quantile ``1 - false_alarm`` of the best frame of each null window, so
+``false_alarm`` is a share of windows at any frame count; no ground truth is involved. A window's
+position is the coordinate-wise median of its detected frames (optionally its latest few). When no
+frame of a window is detected, the last detected position of the same sequence is held for
+``hold_seconds``, then the mean of the sequence's detections so far (``fallback: mean``) or the
+search region's centre (``fallback: centre``) is returned (the centre before the first detection).
 That memory follows the batches' ``sequence`` and ``time`` entries (windows in time order, as the
 test and predict loaders give them); without them every window stands alone.
 
@@ -51,6 +59,8 @@ MAX_COARSE_WIDTH = 32.0
 WINDOW_LEVELS = 2
 #: the delay fit: lags searched around a candidate's delays, Gauss-Newton steps, damping, largest step (m)
 FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 8, 1e-3, 5.0
+#: what an undetected window returns once the hold has expired
+FALLBACKS = ("mean", "centre")
 
 
 @register_model("srp_phat")
@@ -74,8 +84,15 @@ class SRPPhat(TrajectoryNet):
         candidates: int = 32,
         frame_candidates: int = 4,
         false_alarm: float = 0.01,
-        null_frames: int = 1000,
+        null_windows: int = 300,
         hold_seconds: float = 3.0,
+        ground_height: float | None = 0.0,
+        reflection_weight: float = 1.0,
+        refine_levels: int = 4,
+        fit_delays: bool = True,
+        min_range: float = 4.0,
+        fallback: str = "mean",
+        latest_frames: int = 0,
         input_recipes: dict[str, str] | None = None,
     ):
         """Args:
@@ -87,9 +104,24 @@ class SRPPhat(TrajectoryNet):
                 ``fine_step``.
             candidates: best cells kept at each level of a window's search.
             frame_candidates: best cells kept per frame before the exact last level.
-            false_alarm: share of null frames allowed over the detection threshold.
-            null_frames: frames of white noise that set the threshold.
+            false_alarm: share of null windows allowed over each detection threshold.
+            null_windows: windows of white noise that set the thresholds.
             hold_seconds: how long a sequence keeps its last detection before falling back to its mean.
+            ground_height: z (m, rig frame) of the reflecting ground plane (the roof surface is z = 0 in
+                the rig frame), or None for free-field steering. Each pair's correlation then holds, besides
+                the direct-direct peak, peaks where the ground image of one or both paths meets the other:
+                steering all four lets the reflection confirm the direct peak instead of competing with it.
+            reflection_weight: weight of each of the three reflected terms against the direct one (1: a
+                hard ground such as concrete, reflection factor about 0.95).
+            refine_levels: per frame, levels of 27-point refinement (from ``2 ** (levels - 1) * fine_step``
+                down to ``fine_step``) on the exact multipath response after the delay fit.
+            fit_delays: fit each frame's candidates to its direct pair delays (Gauss-Newton) first.
+            fallback: after the hold, ``mean`` (of the sequence's detections so far) or ``centre`` (of
+                the search region: the flight region's prior, unbiased by false or near detections).
+            latest_frames: a window's position is the median of its latest this many detected frames
+                (0: of all): the drone moves, so older frames lag, but they still detect a weak source.
+            min_range: points closer than this to the microphones' centre (m) score 0: the drone keeps
+                clear of the rig, and the diffuse ambient's coherence makes false peaks inside the array.
         """
         super().__init__(in_channels, input_recipes=input_recipes)
         self.recipe = phase_recipe(self.inputs["audio_phase"])
@@ -102,8 +134,17 @@ class SRPPhat(TrajectoryNet):
             raise ValueError(f"srp_phat region must be 3 mins below 3 maxes, got {region_min} {region_max}")
         self.coarse_step, self.fine_step = float(coarse_step), float(fine_step)
         self.frame_candidates = int(frame_candidates)
-        self.candidates, self.false_alarm, self.null_frames = int(candidates), float(false_alarm), int(null_frames)
+        self.candidates, self.false_alarm, self.null_windows = int(candidates), float(false_alarm), int(null_windows)
         self.hold_seconds = float(hold_seconds)
+        self.ground_height = None if ground_height is None else float(ground_height)
+        self.reflection_weight = float(reflection_weight)
+        self.refine_levels = int(refine_levels)
+        self.fit_delays = bool(fit_delays)
+        self.min_range = float(min_range)
+        if fallback not in FALLBACKS:
+            raise ValueError(f"srp_phat fallback must be one of {FALLBACKS}, got {fallback!r}")
+        self.fallback = fallback
+        self.latest_frames = int(latest_frames)
         self._thresholds: dict[bytes, float] = {}
         self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._tracks: dict[int, dict] = {}  #: sequence index -> hold/fallback memory
@@ -129,24 +170,79 @@ class SRPPhat(TrajectoryNet):
 
     # ------------------------------------------------------------------------------ search
 
-    def _pair_geometry(self, points: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """For ``points`` (... x 3): each pair's fractional lag column and the norm of the gradient of
-        its path difference (``|u_i - u_j|`` for unit vectors from the mics, 0..2), both ... x pairs."""
-        first, second = pair_indices(mics.shape[0])
-        mics = mics.to(points.dtype)
+    def _terms(self, channels: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The steered terms: per term the two (virtual) microphones, the correlation row it reads and its weight.
+
+        Virtual microphones ``channels .. 2 * channels - 1`` are the ground images of the real ones (the
+        reflected path from a source to a microphone is as long as the direct path to its image). Pair
+        ``(i, j)`` reads: direct-direct ``(i, j)``, then with a ground plane image-direct ``(i', j)``,
+        direct-image ``(i, j')`` and image-image ``(i', j')``, all on the pair's own correlation row.
+        """
+        first, second = pair_indices(channels)
+        rows = torch.arange(len(first))
+        if self.ground_height is None:
+            return first, second, rows, torch.ones(len(first))
+        image = channels
+        firsts = torch.cat([first, first + image, first, first + image])
+        seconds = torch.cat([second, second, second + image, second + image])
+        weights = torch.cat([torch.ones(len(first)), torch.full((3 * len(first),), self.reflection_weight)])
+        return firsts, seconds, rows.repeat(4), weights
+
+    def _virtual_mics(self, mics: torch.Tensor) -> torch.Tensor:
+        """The microphones, then (with a ground plane) their mirror images in it."""
+        if self.ground_height is None:
+            return mics
+        mirrored = mics.clone()
+        mirrored[:, 2] = 2 * self.ground_height - mics[:, 2]
+        return torch.cat([mics, mirrored])
+
+    def _pair_geometry(self, points: torch.Tensor, mics: torch.Tensor, direct_only: bool = False
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+        """For ``points`` (... x 3): each term's fractional lag column and the norm of the gradient of
+        its path difference (``|u_i - u_j|`` for unit vectors from the (virtual) mics, 0..2), ... x terms.
+        ``direct_only``: the direct-direct terms (one per pair) alone."""
+        first, second = self._terms(mics.shape[0])[:2]
+        if direct_only:
+            first, second = first[: len(mic_pairs(mics.shape[0]))], second[: len(mic_pairs(mics.shape[0]))]
+        virtual = self._virtual_mics(mics).to(points.dtype)
         flat = points.reshape(-1, 3)
-        cross = flat @ mics.T  # M x C
+        cross = flat @ virtual.T  # M x V
         squared = (flat * flat).sum(dim=1, keepdim=True)
-        mic_squared = (mics * mics).sum(dim=1)
+        mic_squared = (virtual * virtual).sum(dim=1)
         distance = (squared - 2 * cross + mic_squared).clamp_min(1e-12).sqrt()
         delay = (distance[:, first] - distance[:, second]) / self.speed_of_sound
         half = (self.recipe.num_lags() - 1) // 2
         position = delay * self.recipe.lag_rate + half
-        dot = squared - cross[:, first] - cross[:, second] + (mics[first] * mics[second]).sum(dim=1)
+        dot = squared - cross[:, first] - cross[:, second] + (virtual[first] * virtual[second]).sum(dim=1)
         cosine = dot / (distance[:, first] * distance[:, second])
         gradient = (2 - 2 * cosine).clamp_min(0).sqrt()
         shape = (*points.shape[:-1], len(first))
         return position.reshape(shape), gradient.reshape(shape)
+
+    def _near(self, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
+        """Whether points (... x 3) lie within ``min_range`` of the microphones' centre (... x 1): no drone
+        flies inside the array, and there the diffuse ambient's coherence (all delays near zero) peaks."""
+        centre = mics.mean(dim=0).to(points.dtype)
+        return (torch.linalg.vector_norm(points - centre, dim=-1) < self.min_range)[..., None]
+
+    def _distinct(self, position: torch.Tensor, channels: int) -> torch.Tensor:
+        """Which terms (... x terms, as :meth:`_terms` orders them) lie apart from the pair's earlier terms.
+
+        Where a reflected term falls within ``lag_rate / f_max`` lags (the correlation peak's half-width)
+        of an earlier term of the same pair, the two paths merge into one peak; counting it again would
+        favour points near the ground plane, where every reflected term meets the direct one.
+        """
+        terms = position.shape[-1]
+        pairs = len(mic_pairs(channels))
+        if terms == pairs:
+            return torch.ones_like(position, dtype=torch.bool)
+        grouped = position.reshape(*position.shape[:-1], terms // pairs, pairs)
+        width = self.recipe.lag_rate / self.recipe.f_max
+        keep = [torch.ones_like(grouped[..., 0, :], dtype=torch.bool)]
+        for t in range(1, grouped.shape[-2]):
+            apart = ((grouped[..., t:t + 1, :] - grouped[..., :t, :]).abs() > width).all(dim=-2)
+            keep.append(apart)
+        return torch.stack(keep, dim=-2).reshape(position.shape)
 
     def _coarse_grid(self, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The coarse cells (centres G x 3 and sides G) and their columns in the flattened pooled
@@ -180,38 +276,41 @@ class SRPPhat(TrajectoryNet):
         return step * (math.sqrt(3) / 2) / self.speed_of_sound * self.recipe.lag_rate
 
     def _columns(self, points: torch.Tensor, mics: torch.Tensor, step: float | torch.Tensor) -> torch.Tensor:
-        """Column of each point (... x 3) and pair in the flattened pooled correlations -> ... x pairs."""
+        """Column of each point (... x 3) and term in the flattened pooled correlations -> ... x terms."""
         pairs = len(mic_pairs(mics.shape[0]))
+        rows = self._terms(mics.shape[0])[2]
         lags = self.recipe.num_lags()
         position, gradient = self._pair_geometry(points, mics)
         width = gradient * self._lag_scale(step)
         level = torch.bucketize(width.ceil(), torch.tensor(POOL_WIDTHS, dtype=width.dtype))
         level = level.clamp(max=len(POOL_WIDTHS) - 1)
         index = position.round().long()
-        outside = (index < 0) | (index >= lags)
-        columns = (level * pairs + torch.arange(pairs)) * lags + index.clamp(0, lags - 1)
+        outside = (index < 0) | (index >= lags) | ~self._distinct(position, mics.shape[0]) | self._near(points, mics)
+        columns = (level * pairs + rows) * lags + index.clamp(0, lags - 1)
         return torch.where(outside, torch.full_like(columns, -1), columns)  # -1: the zero column appended
 
-    @staticmethod
-    def _gather(flat: torch.Tensor, columns: torch.Tensor) -> torch.Tensor:
-        """Mean over pairs of ``flat`` (N x columns, a zero column last) at ``columns`` (N x K x P or K x P)."""
-        if columns.dim() == 2:
-            return flat[:, columns].mean(dim=-1)
-        rows = torch.arange(flat.shape[0])[:, None, None]
-        return flat[rows, columns].mean(dim=-1)
+    def _gather(self, flat: torch.Tensor, columns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """Weighted mean over terms of ``flat`` (N x columns, a zero column last) at ``columns``
+        (N x K x T or K x T)."""
+        rows = slice(None) if columns.dim() == 2 else torch.arange(flat.shape[0])[:, None, None]
+        values = flat[rows, columns]
+        return (values * (weights / weights.sum())).sum(dim=-1)
 
     def _exact(self, correlation: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
-        """Mean pair correlation (N x P x L) at ``points`` (N x K x 3), linearly interpolated between lags."""
+        """Steered response (N x K) of correlations (N x P x L) at ``points`` (N x K x 3): the weighted mean
+        over terms, linearly interpolated between lags."""
         lags = correlation.shape[-1]
-        position = self._pair_geometry(points, mics)[0]  # N x K x P
+        _, _, rows, weights = self._terms(mics.shape[0])
+        position = self._pair_geometry(points, mics)[0]  # N x K x T
         low = position.floor().clamp(0, lags - 2)
         frac = (position - low).clamp(0, 1)
         low = low.long()
         batch = torch.arange(correlation.shape[0])[:, None, None]
-        pairs = torch.arange(correlation.shape[1])
-        a, b = correlation[batch, pairs, low], correlation[batch, pairs, low + 1]
-        inside = (position >= 0) & (position <= lags - 1)
-        return torch.where(inside, a + frac * (b - a), torch.zeros((), dtype=a.dtype)).mean(dim=-1)
+        a, b = correlation[batch, rows, low], correlation[batch, rows, low + 1]
+        inside = (position >= 0) & (position <= lags - 1) & self._distinct(position, mics.shape[0])
+        inside = inside & ~self._near(points, mics)
+        values = torch.where(inside, a + frac * (b - a), torch.zeros((), dtype=a.dtype))
+        return (values * (weights / weights.sum()).to(values.dtype)).sum(dim=-1)
 
     def _refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor,
                 keep: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -222,7 +321,8 @@ class SRPPhat(TrajectoryNet):
         steps = steps / 2
         children = self._clamp((points[:, :, None, :] + offsets * steps[..., None, None]).reshape(n, -1, 3))
         child_steps = steps[:, :, None].expand(-1, -1, offsets.shape[0]).reshape(n, -1)
-        scores = self._gather(flat, self._columns(children, mics, child_steps[..., None]))
+        weights = self._terms(mics.shape[0])[3]
+        scores = self._gather(flat, self._columns(children, mics, child_steps[..., None]), weights)
         best = scores.topk(min(keep, children.shape[1]), dim=1)
         return (torch.gather(children, 1, best.indices[..., None].expand(-1, -1, 3)),
                 torch.gather(child_steps, 1, best.indices), best.values)
@@ -235,7 +335,8 @@ class SRPPhat(TrajectoryNet):
 
         The grid levels search each window once, on its frames' mean correlation (non-coherent, so
         the slow drift of the delays within a window does not cancel it); then each frame fits the
-        window's best candidates to its own pair delays and keeps the one of highest exact response.
+        window's best candidates to its own pair delays, refines them on its exact response and keeps
+        the best.
         """
         b, f, p, lags = correlation.shape
         corr = correlation.to(torch.float32)
@@ -243,18 +344,36 @@ class SRPPhat(TrajectoryNet):
         grid, sides, columns = self._coarse_grid(mics)
         k = min(self.candidates, grid.shape[0])
         flat = self._pooled(mean)
-        best = self._gather(flat, columns).topk(k, dim=1)  # B x G -> B x k
+        best = self._gather(flat, columns, self._terms(mics.shape[0])[3]).topk(k, dim=1)  # B x G -> B x k
         points, steps = grid[best.indices], sides[best.indices]
         for _ in range(WINDOW_LEVELS):
             points, steps, _ = self._refine(flat, points, steps, mics, k)
         points = points[:, : self.frame_candidates]
-        # per frame: fit the candidate to the pair delays measured near its own, then score it exactly
+        # per frame: fit the candidate to the pair delays measured near its own, then refine it on the
+        # exact (multipath) response
         frames = corr.reshape(b * f, p, lags)
-        points = self._fit_delays(frames, points.repeat_interleave(f, dim=0), mics)
-        scores = self._exact(frames, points, mics)
+        points = points.repeat_interleave(f, dim=0)
+        if self.fit_delays:
+            points = self._fit_delays(frames, points, mics)
+        points, scores = self._refine_exact(frames, points, mics)
         top = scores.argmax(dim=1)
         rows = torch.arange(b * f)
         return points[rows, top].reshape(b, f, 3), scores[rows, top].reshape(b, f)
+
+    def _refine_exact(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Hill-climb each point (N x K x 3) on a frame's exact response: at every level the best of the 27
+        points one step around it, the step halving from ``2 ** (refine_levels - 1) * fine_step`` down to
+        ``fine_step``. Returns the points and their responses (N x K)."""
+        offsets = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)  # 27 x 3 (the centre included)
+        n, k = points.shape[:2]
+        for level in reversed(range(self.refine_levels)):
+            step = self.fine_step * 2 ** level
+            children = self._clamp(points[:, :, None, :] + offsets * step)  # N x K x 27 x 3
+            scores = self._exact(frames, children.reshape(n, -1, 3), mics).reshape(n, k, -1)
+            best = scores.argmax(dim=-1)
+            points = torch.gather(children, 2, best[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
+        return points, self._exact(frames, points, mics)
 
     def _fit_delays(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
         """Move each candidate (N x K x 3) to the point whose pair delays best match the frame's.
@@ -267,7 +386,7 @@ class SRPPhat(TrajectoryNet):
         """
         n, k = points.shape[:2]
         lags = frames.shape[-1]
-        position = self._pair_geometry(points, mics)[0]  # N x K x P
+        position = self._pair_geometry(points, mics, direct_only=True)[0]  # N x K x P
         window = torch.arange(-FIT_SEARCH, FIT_SEARCH + 1)
         index = (position.round().long()[..., None] + window).clamp(1, lags - 2)  # N x K x P x W
         batch = torch.arange(n)[:, None, None, None]
@@ -287,7 +406,7 @@ class SRPPhat(TrajectoryNet):
             direction = points[..., None, :] - m  # N x K x C x 3
             unit = direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-6)
             jacobian = (unit[..., first, :] - unit[..., second, :]) * scale  # N x K x P x 3
-            residual = self._pair_geometry(points, mics)[0] - measured  # N x K x P
+            residual = self._pair_geometry(points, mics, direct_only=True)[0] - measured  # N x K x P
             jw = jacobian * weight[..., None]
             normal = jw.transpose(-1, -2) @ jacobian
             damping = FIT_DAMPING * normal.diagonal(dim1=-2, dim2=-1).mean(dim=-1)[..., None, None]
@@ -306,24 +425,27 @@ class SRPPhat(TrajectoryNet):
     # ------------------------------------------------------------------------------ null statistic
 
     def threshold(self, mics: torch.Tensor) -> float:
-        """The detection threshold for a geometry: the ``1 - false_alarm`` quantile of the null peak response."""
+        """The detection threshold of a geometry: the ``1 - false_alarm`` quantile, over null windows, of
+        the peak response of their best frame (so ``false_alarm`` is the share of null windows with a
+        detection, whatever the recipe's frame count)."""
         key = mics.numpy().tobytes()
         if key not in self._thresholds:
             sample_rate = 48000.0
             gcc = GccPhat(self.recipe, sample_rate, mics.shape[0])
             generator = np.random.default_rng(0)
             frames_per_window = self.recipe.frames
-            windows = max(1, math.ceil(self.null_frames / frames_per_window))
+            windows = self.null_windows
             noise = generator.standard_normal((mics.shape[0], windows * frames_per_window * gcc.frame))
             frames = split_frames(noise.astype(np.float32), gcc.frame, windows * frames_per_window)
             correlation = gcc.correlate(gcc.cross_spectra(frames))  # P x (windows * F) x L
             correlation = correlation.reshape(-1, windows, frames_per_window, correlation.shape[-1])
-            peaks = [self._search(correlation.permute(1, 2, 0, 3)[start:start + 64], mics)[1].flatten()
+            found = [self._search(correlation.permute(1, 2, 0, 3)[start:start + 64], mics)
                      for start in range(0, windows, 64)]
-            value = float(torch.quantile(torch.cat(peaks), 1.0 - self.false_alarm))
+            best = torch.cat([peaks.amax(dim=1) for _, peaks in found])  # each window's best frame
+            value = float(torch.quantile(best, 1.0 - self.false_alarm))
             self._thresholds[key] = value
-            log.info("srp_phat: detection threshold %.4f (null quantile %.3f of %d white-noise frames)", value,
-                     1.0 - self.false_alarm, self.null_frames)
+            log.info("srp_phat: detection threshold %.4f (null quantile %.3f of the best frame of %d white-noise "
+                     "windows)", value, 1.0 - self.false_alarm, windows)
         return self._thresholds[key]
 
     def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
@@ -355,6 +477,9 @@ class SRPPhat(TrajectoryNet):
                 threshold = self.threshold(mics)
                 points, peak = self._search(phase[rows].detach().cpu().permute(0, 2, 1, 3), mics)
                 hit = peak > threshold
+                if self.latest_frames:  # keep the latest detected frames only
+                    later_hits = hit.flip(1).cumsum(dim=1).flip(1)  # detected frames from each one to the end
+                    hit = hit & (later_hits <= self.latest_frames)
                 masked = torch.where(hit[..., None], points, torch.full_like(points, float("nan")))
                 positions[rows] = masked.nanmedian(dim=1).values
                 scores[rows] = peak.max(dim=1).values / threshold
@@ -378,7 +503,7 @@ class SRPPhat(TrajectoryNet):
                 track.update(last=positions[i], last_time=t, sum=track["sum"] + positions[i], count=track["count"] + 1)
             elif track["last"] is not None and t - track["last_time"] <= self.hold_seconds:
                 out[i] = track["last"]
-            elif track["count"]:
+            elif track["count"] and self.fallback == "mean":
                 out[i] = track["sum"] / track["count"]
             else:
                 out[i] = centre
