@@ -18,20 +18,21 @@ import numpy as np
 
 from datamodules.atomic import atomic_write
 from datamodules.errors import ConfigError
+from datamodules.formats.ros_messages import SAMPLE_FORMATS, full_scale
 from datamodules.recording import AudioStream
 
-#: sample format -> (numpy dtype of one sample, full scale of an integer format or None for float)
-PCM_FORMATS: dict[str, tuple[str, float | None]] = {"s16le": ("<i2", 2.0**15), "s32le": ("<i4", 2.0**31),
-                                                     "f32le": ("<f4", None)}
+#: raw PCM sample formats as command lines spell them (``s16le``, ...) -> numpy dtypes of one sample
+PCM_FORMATS = {name.lower(): np.dtype(dtype) for name, dtype in SAMPLE_FORMATS.items()}
 WAV_FORMATS = ("s16le", "s32le")
 CHUNK_SECONDS = 1.0
 
 
 def encode(samples: np.ndarray, fmt: str) -> bytes:
     """Float samples (channels x n, full scale 1) -> interleaved little-endian bytes of ``fmt``."""
-    dtype, scale = PCM_FORMATS[fmt]
+    dtype = PCM_FORMATS[fmt]
     frames = samples.T.astype(np.float64)
-    if scale is not None:
+    if dtype.kind != "f":
+        scale = full_scale(dtype)
         frames = np.clip(np.rint(frames * scale), -scale, scale - 1)
     return np.ascontiguousarray(frames, dtype=dtype).tobytes()
 
@@ -73,7 +74,7 @@ def write_wav(audio: AudioStream, path: str | Path, fmt: str = "s16le", overwrit
         raise ConfigError(f"{path}: WAV needs a whole-number sample rate, the recording has {rate} Hz")
     with atomic_write(path, overwrite=overwrite) as tmp, wave.open(str(tmp), "wb") as out:
         out.setnchannels(audio.num_channels)
-        out.setsampwidth(np.dtype(PCM_FORMATS[fmt][0]).itemsize)
+        out.setsampwidth(PCM_FORMATS[fmt].itemsize)
         out.setframerate(int(round(rate)))
         for data in _chunks(audio, fmt):
             out.writeframesraw(data)

@@ -52,14 +52,15 @@ import numpy as np
 import torch
 from torch import nn
 
+from datamodules.audio_export import PCM_FORMATS
 from datamodules.errors import AauteError, ConfigError
 from datamodules.features import MEL_RECIPES, MelRecipe, frame_power_mel, mel_frame_layout, mel_map, mel_recipe
+from datamodules.formats.ros_messages import full_scale
 from zoo.robust_smoothing import OnlineRow, OnlineSmoother
 
 log = logging.getLogger(__name__)
 
 HOP_SECONDS = 0.1  #: one position per 0.1 s, the 10 Hz of MMAUD's ground truth and the DataModule's labels
-PCM_FORMATS = {"s16le": np.dtype("<i2"), "s32le": np.dtype("<i4"), "f32le": np.dtype("<f4")}
 FLOAT_FULL_SCALE_LIMIT = 1e3  #: float samples are in [-1, 1]; values this large mean the bytes are not float32
 COLUMNS = ("timestamp", "x", "y", "z", "std_x", "std_y", "std_z")
 
@@ -182,7 +183,7 @@ class WavSource(AudioSource):
         self.sample_rate = float(rate)
         self.channels = int(self.data.shape[1])
         kind = self.data.dtype
-        self.scale = 1.0 if kind.kind == "f" else float(2 ** (8 * kind.itemsize - 1))
+        self.scale = full_scale(kind)
         if kind.kind not in "fi":
             raise TrackingError(f"{path}: {kind} WAV samples; expected signed integer or float PCM")
         self.t0 = float(t0)
@@ -216,7 +217,7 @@ class PcmSource(AudioSource):
         self.name, self.stream, self.channels, self.sample_rate = name, stream, int(channels), float(sample_rate)
         self.format = sample_format
         self.dtype = PCM_FORMATS[sample_format]
-        self.scale = 1.0 if self.dtype.kind == "f" else float(2 ** (8 * self.dtype.itemsize - 1))
+        self.scale = full_scale(self.dtype)
         self.frame_bytes = self.channels * self.dtype.itemsize
         self.t0 = float(t0)
         self.stall_timeout = float(stall_timeout)

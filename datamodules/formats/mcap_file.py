@@ -46,6 +46,7 @@ from datamodules.atomic import atomic_write
 from datamodules.formats.ros_messages import (
     MSGDEFS,
     SAMPLE_FORMATS,
+    full_scale,
     header,
     pointcloud_fields,
     pointcloud_to_arrays,
@@ -98,7 +99,7 @@ def _encode_audio(block: np.ndarray, sample_format: str) -> bytes:
     interleaved = block.T
     if sample_format == "F32LE":
         return np.ascontiguousarray(interleaved, dtype="<f4").tobytes()
-    scale = 2.0 ** (8 * np.dtype(SAMPLE_FORMATS[sample_format]).itemsize - 1)
+    scale = full_scale(SAMPLE_FORMATS[sample_format])
     codes = np.rint(interleaved.astype(np.float64) * scale)
     if np.any(codes != interleaved.astype(np.float64) * scale) or np.any(np.abs(codes) > scale):
         raise ValueError(f"audio samples do not lie on the {sample_format} grid; write them as F32LE")
@@ -429,7 +430,7 @@ class McapAudio(AudioStream):
                     f"{info.sample_format}, metadata says {channels} ch, {self.sample_rate} Hz, {self.sample_format}"
                 )
         self._dtype = np.dtype(SAMPLE_FORMATS[self.sample_format])
-        self._scale = 1.0 if self._dtype.kind == "f" else 2.0 ** (8 * self._dtype.itemsize - 1)
+        self._scale = full_scale(self._dtype)
         stamps = index.log_times(TOPIC_AUDIO)
         check_monotonic(ns_to_seconds(stamps), f"{path} {TOPIC_AUDIO}")
         # sample index of each message's first sample, from its stamp

@@ -52,6 +52,12 @@ _DTYPE_CODES = {np.dtype(v).str.lstrip("<|"): k for k, v in POINT_FIELD_DTYPES.i
 SAMPLE_FORMATS = {"S16LE": "<i2", "S32LE": "<i4", "F32LE": "<f4"}
 
 
+def full_scale(dtype: np.dtype | str) -> float:
+    """The value of a full-scale sample: 1 for float samples, 2 ** (bits - 1) for signed integers."""
+    dtype = np.dtype(dtype)
+    return 1.0 if dtype.kind == "f" else 2.0 ** (8 * dtype.itemsize - 1)
+
+
 def header(stamp_ns: int, frame_id: str = "") -> dict:
     """A ``std_msgs/Header`` as a dict for the CDR encoder."""
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)

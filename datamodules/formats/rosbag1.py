@@ -56,7 +56,7 @@ from typing import Any
 
 import numpy as np
 
-from datamodules.formats.ros_messages import SAMPLE_FORMATS, pointcloud_to_arrays, stamp_ns
+from datamodules.formats.ros_messages import SAMPLE_FORMATS, full_scale, pointcloud_to_arrays, stamp_ns
 from datamodules.recording import (
     DRONE_TYPES,
     RATE_TOLERANCE,
@@ -460,7 +460,7 @@ class BagAudio(AudioStream):
         self.mic_positions = np.zeros((channels, 3))
         self.sample_format = sample_format
         self._dtype = np.dtype(SAMPLE_FORMATS[sample_format])
-        self._scale = 1.0 if self._dtype.kind == "f" else 2.0 ** (8 * self._dtype.itemsize - 1)
+        self._scale = full_scale(self._dtype)
 
     def read(self, start: int, stop: int) -> np.ndarray:
         self._check_range(start, stop)
