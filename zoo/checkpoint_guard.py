@@ -67,7 +67,7 @@ def _refuse_or_follow(section: Any, source: str, net: str, net_kwargs: dict[str,
 
 def check_run(subcommand: str, section: Any) -> PendingWeights | None:
     """Check (and for ``--weights``, resolve) this run's checkpoint; return weights to load after building."""
-    from zoo.weights import _resolve
+    from zoo.weights import resolve_weights
 
     ckpt_path, weights = section.get("ckpt_path"), section.get("weights")
     if weights:
@@ -77,7 +77,7 @@ def check_run(subcommand: str, section: Any) -> PendingWeights | None:
             raise CheckpointError(f"give --weights or --ckpt_path, not both (got {weights} and {ckpt_path})")
         init_args = _model_args(section)
         configured = init_args.get("net") if init_args is not None else None
-        contents, entry = _resolve(None if section.get("use_checkpoint_model") else configured, weights, None)
+        contents, entry = resolve_weights(None if section.get("use_checkpoint_model") else configured, weights, None)
         net = contents.net or (entry.model if entry else configured)
         _refuse_or_follow(section, str(contents.path), net, contents.net_kwargs)
         if contents.kind == "lightning":

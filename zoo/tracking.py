@@ -424,7 +424,7 @@ def load_tracking_model(ckpt_path: str | Path | None = None, weights: str | Path
         TrackingError: neither or both sources given, or a model whose inputs are not one mel map (phase
             and image recipes are not streamed), naming the model and the recipes supported.
     """
-    from zoo.weights import _resolve, build_net, load_task
+    from zoo.weights import build_net, load_task, resolve_weights
 
     if (ckpt_path is None) == (weights is None):
         raise ConfigError("aaute track needs exactly one of --ckpt_path FILE and --weights NAME_OR_PATH")
@@ -437,7 +437,7 @@ def load_tracking_model(ckpt_path: str | Path | None = None, weights: str | Path
         net, name, source = task.net, str(task.hparams.net), str(path)
         data = _data_settings(path)
     else:
-        contents, entry = _resolve(None, weights, offline)
+        contents, entry = resolve_weights(None, weights, offline)
         net = build_net(contents, None, None, entry)
         name, source = net.model_name, str(contents.path)
         data = {"inputs": dict(contents.inputs or (entry.inputs if entry else {}))}

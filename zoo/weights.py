@@ -224,7 +224,7 @@ def weights_file(entry: Weights, offline: bool | None = None) -> Path:
 # ---------------------------------------------------------------------------------------------- loading
 
 
-def _resolve(model: str | None, weights: str | Path, offline: bool | None
+def resolve_weights(model: str | None, weights: str | Path, offline: bool | None
              ) -> tuple[CheckpointContents, Weights | None]:
     """The file contents named by ``weights`` (a registered name or a path) and its registry entry, if any."""
     path = Path(weights)
@@ -274,7 +274,7 @@ def load_pretrained(model: str, weights: str | Path | None = None, *, offline: b
             raise WeightsError(f"load_pretrained({model!r}) needs weights=...: {len(names)} registered for it "
                                f"({', '.join(names) or 'none'})")
         weights = names[0]
-    contents, entry = _resolve(model, weights, offline)
+    contents, entry = resolve_weights(model, weights, offline)
     net = build_net(contents, model, net_kwargs, entry)
     net.pretrained = entry.as_dict() if entry else {"source": str(contents.path), **contents.metadata}
     return net

@@ -80,9 +80,9 @@ def _cmd_import(args: argparse.Namespace) -> int:
 
 def _cmd_export(args: argparse.Namespace) -> int:
     from zoo.export import export
-    from zoo.weights import _resolve, build_net
+    from zoo.weights import build_net, resolve_weights
 
-    contents, entry = _resolve(args.model, args.weights, None)
+    contents, entry = resolve_weights(args.model, args.weights, None)
     net = build_net(contents, args.model, None, entry)
     provenance = {"source": str(contents.path), "kind": contents.kind,
                   **({"weights": entry.name, "sha256": entry.sha256, "data": entry.data, "protocol": entry.protocol,
