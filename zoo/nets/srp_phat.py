@@ -20,7 +20,7 @@ A frame counts as a detection when its peak response exceeds a threshold set fro
 the same search on independent white noise per microphone (nothing coherent, like channels shifted
 apart by seconds): the quantile ``1 - false_alarm`` of the best frame of each null window, so
 ``false_alarm`` is a share of windows at any frame count; no ground truth is involved. A window's
-position is the coordinate-wise median of its detected frames (optionally its latest few). When no
+position is the coordinate-wise median of its detected frames. When no
 frame of a window is detected, the last detected position of the same sequence is held for
 ``hold_seconds``, then the mean of the sequence's detections so far (``fallback: mean``) or the
 search region's centre (``fallback: centre``) is returned (the centre before the first detection).
@@ -92,7 +92,6 @@ class SRPPhat(TrajectoryNet):
         fit_delays: bool = True,
         min_range: float = 4.0,
         fallback: str = "mean",
-        latest_frames: int = 0,
         input_recipes: dict[str, str] | None = None,
     ):
         """Args:
@@ -118,8 +117,6 @@ class SRPPhat(TrajectoryNet):
             fit_delays: fit each frame's candidates to its direct pair delays (Gauss-Newton) first.
             fallback: after the hold, ``mean`` (of the sequence's detections so far) or ``centre`` (of
                 the search region: the flight region's prior, unbiased by false or near detections).
-            latest_frames: a window's position is the median of its latest this many detected frames
-                (0: of all): the drone moves, so older frames lag, but they still detect a weak source.
             min_range: points closer than this to the microphones' centre (m) score 0: the drone keeps
                 clear of the rig, and the diffuse ambient's coherence makes false peaks inside the array.
         """
@@ -144,7 +141,6 @@ class SRPPhat(TrajectoryNet):
         if fallback not in FALLBACKS:
             raise ValueError(f"srp_phat fallback must be one of {FALLBACKS}, got {fallback!r}")
         self.fallback = fallback
-        self.latest_frames = int(latest_frames)
         self._thresholds: dict[bytes, float] = {}
         self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._tracks: dict[int, dict] = {}  #: sequence index -> hold/fallback memory
@@ -203,7 +199,8 @@ class SRPPhat(TrajectoryNet):
         ``direct_only``: the direct-direct terms (one per pair) alone."""
         first, second = self._terms(mics.shape[0])[:2]
         if direct_only:
-            first, second = first[: len(mic_pairs(mics.shape[0]))], second[: len(mic_pairs(mics.shape[0]))]
+            pairs = len(mic_pairs(mics.shape[0]))
+            first, second = first[:pairs], second[:pairs]
         virtual = self._virtual_mics(mics).to(points.dtype)
         flat = points.reshape(-1, 3)
         cross = flat @ virtual.T  # M x V
@@ -477,9 +474,6 @@ class SRPPhat(TrajectoryNet):
                 threshold = self.threshold(mics)
                 points, peak = self._search(phase[rows].detach().cpu().permute(0, 2, 1, 3), mics)
                 hit = peak > threshold
-                if self.latest_frames:  # keep the latest detected frames only
-                    later_hits = hit.flip(1).cumsum(dim=1).flip(1)  # detected frames from each one to the end
-                    hit = hit & (later_hits <= self.latest_frames)
                 masked = torch.where(hit[..., None], points, torch.full_like(points, float("nan")))
                 positions[rows] = masked.nanmedian(dim=1).values
                 scores[rows] = peak.max(dim=1).values / threshold
