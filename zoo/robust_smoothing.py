@@ -59,7 +59,16 @@ from scipy.linalg import lapack
 from scipy.optimize import minimize_scalar
 from scipy.special import digamma, gammaln
 
-from zoo.smoothing import SmoothedTrack, _distance_to_nearest, _matern52_model, _per_axis, _prepare, _torch_threads
+from zoo.smoothing import (
+    SmoothedTrack,
+    _distance_to_nearest,
+    _matern52_model,
+    _matern52_nilpotent,
+    _matern52_transition,
+    _per_axis,
+    _prepare,
+    _torch_threads,
+)
 
 log = logging.getLogger(__name__)
 
@@ -894,16 +903,11 @@ class OnlineSmoother:
         self.scale = self.hyperparameters.scale_for(self.lag) if calibrate else 1.0
         ls, os_, noise = self.hyperparameters.arrays()
         self._noise = noise
-        self._lam = math.sqrt(5.0) / ls
+        # lam = sqrt(5) / lengthscale, N = F + lam I (nilpotent) and N^2 per axis, for exp(F d) in closed form
+        self._lam, self._nil, self._nil2 = _matern52_nilpotent(ls)
         self._outputscale = os_
         _, _, P0 = _matern52_model(np.zeros(1), ls, os_)
         self._P0 = P0
-        # F + lam I of each axis (nilpotent) and its square: exp(F d) = exp(-lam d) (I + N d + N^2 d^2 / 2)
-        self._nil = np.zeros((3, 3, 3))
-        self._nil[:, 0, 0] = self._nil[:, 1, 1] = self._lam
-        self._nil[:, 0, 1] = self._nil[:, 1, 2] = 1.0
-        self._nil[:, 2] = np.stack([-(self._lam**3), -3.0 * self._lam**2, -2.0 * self._lam], -1)
-        self._nil2 = self._nil @ self._nil
         self._centre: np.ndarray | None = None
         self._m = np.zeros((3, 3))  # committed filtered state (axis, state)
         self._P = P0.copy()
@@ -916,9 +920,7 @@ class OnlineSmoother:
 
     def _transition(self, dt: np.ndarray) -> np.ndarray:
         """exp(F dt) per step and axis, (len(dt), 3, 3, 3), in closed form."""
-        d = dt[:, None, None, None]
-        decay = np.exp(-self._lam[None, :, None, None] * d)
-        return decay * (np.eye(3) + self._nil * d + self._nil2 * (d * d / 2.0))
+        return _matern52_transition(dt, self._lam, self._nil, self._nil2)
 
     def _prior(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Prior mean (W, 3) and covariance (3, W, W) of f at the window's times, given the committed state."""

@@ -321,21 +321,32 @@ def _matern52_model(
     nilpotent, exp(F dt) = exp(-lam dt) (I + N dt + N^2 dt^2 / 2) in closed form, and
     Q = P - A P A^T for the stationary covariance P.
     """
-    lam = np.sqrt(5.0) / lengthscale  # (B,)
-    nil = np.zeros((lam.shape[0], 3, 3))
-    nil[:, 0, 0] = nil[:, 1, 1] = lam
-    nil[:, 0, 1] = nil[:, 1, 2] = 1.0
-    nil[:, 2, 0], nil[:, 2, 1], nil[:, 2, 2] = -(lam**3), -3.0 * lam**2, -2.0 * lam
+    lam, nil, nil2 = _matern52_nilpotent(lengthscale)
     stationary = np.zeros((lam.shape[0], 3, 3))
     stationary[:, 0, 0] = 1.0
     stationary[:, 1, 1] = lam**2 / 3.0
     stationary[:, 0, 2] = stationary[:, 2, 0] = -(lam**2) / 3.0
     stationary[:, 2, 2] = lam**4
     stationary *= outputscale[:, None, None]
-    d = dt[:, None, None, None]
-    A = np.exp(-lam[None, :, None, None] * d) * (np.eye(3) + nil * d + (nil @ nil) * (d * d / 2.0))
+    A = _matern52_transition(dt, lam, nil, nil2)
     Q = stationary - A @ stationary @ np.swapaxes(A, -1, -2)
     return A, Q, stationary
+
+
+def _matern52_nilpotent(lengthscale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """lam = sqrt(5) / lengthscale (B,), the nilpotent N = F + lam I (B, 3, 3) of the SDE and N^2."""
+    lam = np.sqrt(5.0) / lengthscale
+    nil = np.zeros((lam.shape[0], 3, 3))
+    nil[:, 0, 0] = nil[:, 1, 1] = lam
+    nil[:, 0, 1] = nil[:, 1, 2] = 1.0
+    nil[:, 2, 0], nil[:, 2, 1], nil[:, 2, 2] = -(lam**3), -3.0 * lam**2, -2.0 * lam
+    return lam, nil, nil @ nil
+
+
+def _matern52_transition(dt: np.ndarray, lam: np.ndarray, nil: np.ndarray, nil2: np.ndarray) -> np.ndarray:
+    """exp(F dt) = exp(-lam dt) (I + N dt + N^2 dt^2 / 2) per step and axis, (n, B, 3, 3)."""
+    d = dt[:, None, None, None]
+    return np.exp(-lam[None, :, None, None] * d) * (np.eye(3) + nil * d + nil2 * (d * d / 2.0))
 
 
 def _statespace_posterior(
