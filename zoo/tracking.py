@@ -57,12 +57,12 @@ from datamodules.errors import AauteError, ConfigError
 from datamodules.features import MEL_RECIPES, MelRecipe, frame_power_mel, mel_frame_layout, mel_map, mel_recipe
 from datamodules.formats.ros_messages import full_scale
 from zoo.robust_smoothing import OnlineRow, OnlineSmoother
+from zoo.smoothing import SMOOTHED_COLUMNS
 
 log = logging.getLogger(__name__)
 
 HOP_SECONDS = 0.1  #: one position per 0.1 s, the 10 Hz of MMAUD's ground truth and the DataModule's labels
 FLOAT_FULL_SCALE_LIMIT = 1e3  #: float samples are in [-1, 1]; values this large mean the bytes are not float32
-COLUMNS = ("timestamp", "x", "y", "z", "std_x", "std_y", "std_z")
 
 
 class TrackingError(AauteError, ValueError):
@@ -470,7 +470,7 @@ class CsvWriter:
 
     def __init__(self, stream: IO[str]):
         self.stream = stream
-        stream.write(",".join(COLUMNS) + "\n")
+        stream.write(",".join(SMOOTHED_COLUMNS) + "\n")
         stream.flush()
 
     def write(self, row: OnlineRow) -> None:
@@ -483,7 +483,7 @@ class McapTrackWriter:
     """Rows as JSON messages on one MCAP topic (schema ``aaute/TrackPoint``), each written out at once."""
 
     SCHEMA = {"type": "object", "title": "aaute/TrackPoint",
-              "properties": {name: {"type": "number"} for name in COLUMNS}}
+              "properties": {name: {"type": "number"} for name in SMOOTHED_COLUMNS}}
 
     def __init__(self, stream: IO[bytes], topic: str):
         from mcap.writer import Writer
@@ -498,7 +498,7 @@ class McapTrackWriter:
     def write(self, row: OnlineRow) -> None:
         from datamodules.recording import seconds_to_ns
 
-        values = dict(zip(COLUMNS, (row.timestamp, *map(float, row.mean), *map(float, row.std)), strict=True))
+        values = dict(zip(SMOOTHED_COLUMNS, (row.timestamp, *map(float, row.mean), *map(float, row.std)), strict=True))
         stamp = int(seconds_to_ns(row.timestamp))
         self.writer.add_message(self.channel, stamp, json.dumps(values).encode(), stamp, self.sequence)
         self.sequence += 1
