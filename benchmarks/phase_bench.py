@@ -26,6 +26,7 @@ from datamodules.atomic import atomic_write
 from datamodules.features import phase_recipe
 from datamodules.mmaud import MMAUDDataModule, discover
 from zoo.registry import get_model
+from zoo.smoothing import make_smoother, smooth_detected
 
 RANGE_BINS = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0))  #: m from the rig origin
 
@@ -60,9 +61,23 @@ def summarise(position: np.ndarray, gt: np.ndarray, detected: np.ndarray, drone:
     return result
 
 
-def run(data: list[Path], recipe: str, net_kwargs: dict, cache: Path | None, batch_size: int = 64
-        ) -> tuple[dict[str, float], dict[str, np.ndarray]]:
-    """Evaluate ``srp_phat`` on every recording under ``data``; the summary and the per-window arrays."""
+def smooth_flights(arrays: dict[str, np.ndarray], smoother: dict) -> np.ndarray:
+    """Per flight, the smoother's track of its detected windows at every window, as ``aaute test``
+    smooths a net that reports detections (:func:`zoo.smoothing.smooth_detected`)."""
+    smoothed = arrays["position"].astype(np.float64)
+    made = make_smoother(**smoother)
+    for sequence in np.unique(arrays["sequence"]):
+        rows = np.flatnonzero(arrays["sequence"] == sequence)
+        rows = rows[np.argsort(arrays["time"][rows], kind="stable")]
+        smoothed[rows] = smooth_detected(made, arrays["time"][rows], smoothed[rows], arrays["detected"][rows])
+    return smoothed
+
+
+def run(data: list[Path], recipe: str, net_kwargs: dict, cache: Path | None, batch_size: int = 64,
+        smoother: dict | None = None) -> tuple[dict[str, float], dict[str, np.ndarray]]:
+    """Evaluate ``srp_phat`` on every recording under ``data``; the summary and the per-window arrays.
+    With ``smoother`` (:func:`zoo.smoothing.make_smoother` arguments), ``E_smooth`` is the error of the
+    detected windows' smoothed track."""
     stems = [path.stem for path in discover([str(d) for d in data])]
     module = MMAUDDataModule([str(d) for d in data], split={"train": [], "val": [], "test": stems},
                              inputs={"audio_phase": recipe}, test_lights=["ideal"], batch_size=batch_size,
@@ -95,6 +110,9 @@ def run(data: list[Path], recipe: str, net_kwargs: dict, cache: Path | None, bat
     valid = arrays["valid"]
     result = summarise(arrays["position"][valid], arrays["gt"][valid], arrays["detected"][valid],
                        arrays["drone"][valid], arrays["flight"][valid])
+    if smoother:
+        arrays["smoothed"] = smooth_flights(arrays, smoother)
+        result["E_smooth"] = float(np.linalg.norm(arrays["smoothed"][valid] - arrays["gt"][valid], axis=1).mean())
     windows = len(arrays["time"])
     shape = phase_recipe(recipe).output_shape(int(module.sequences["test"][0].mic_positions.shape[0]))
     result.update(net_windows_per_s=windows / net_seconds, feature_windows_per_s=windows / feature_seconds,
@@ -115,6 +133,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--cache", type=Path, help="feature cache folder (default $AAUTE_CACHE)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--save", type=Path, help="write the per-window arrays to this .npz")
+    parser.add_argument("--smoother", help="also score the smoothed track of the detected windows: "
+                        "make_smoother arguments as JSON, e.g. '{\"preset\": \"robust\", \"horizon\": 3}'")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     torch.set_num_threads(args.threads)
@@ -122,7 +142,8 @@ def main(argv: list[str] | None = None) -> None:
         net_kwargs = json.loads(args.net_kwargs)
     except json.JSONDecodeError as error:
         parser.error(f"--net-kwargs must be a JSON object of srp_phat arguments: {error}")
-    result, arrays = run(args.data, args.recipe, net_kwargs, args.cache)
+    smoother = None if args.smoother is None else json.loads(args.smoother)
+    result, arrays = run(args.data, args.recipe, net_kwargs, args.cache, smoother=smoother)
     print(format_table(result))
     if args.save is not None:
         with atomic_write(args.save) as tmp, open(tmp, "wb") as handle:

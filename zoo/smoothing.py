@@ -664,6 +664,23 @@ def make_smoother(preset: str | None = None, **options: object):
     return GPSmoother(name, **options)  # type: ignore[arg-type]
 
 
+def smooth_detected(smoother, timestamps: np.ndarray, xyz: np.ndarray, detected: np.ndarray) -> np.ndarray:
+    """One sequence's smoothed positions (N x 3) at every timestamp, from the detected rows alone.
+
+    Rows a net marks undetected hold a remembered or fallback position, not a measurement: the smoother
+    bridges them from the detections, and keeps the net's own position where the nearest detection is
+    beyond its horizon (there it would only drift back to the detections' mean). With fewer than two
+    detections, or no detection flags at all, every row is smoothed.
+    """
+    t = np.asarray(timestamps, dtype=np.float64)
+    positions = np.asarray(xyz, dtype=np.float64)
+    measured = np.asarray(detected, dtype=bool)
+    if int(measured.sum()) < 2 or measured.all():
+        return np.asarray(smoother.smooth(t, positions, t).mean)
+    track = smoother.smooth(t[measured], positions[measured], t)
+    return np.where(track.beyond_horizon[:, None], positions, np.asarray(track.mean))
+
+
 def _distance_to_nearest(sorted_t: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Distance from each query to the nearest of the sorted times."""
     right = np.clip(np.searchsorted(sorted_t, q), 0, len(sorted_t) - 1)

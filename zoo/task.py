@@ -260,7 +260,7 @@ class TrajectoryTask(L.LightningModule):
 
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0) -> None:
         outputs = self._evaluate(batch, "test", dataloader_idx)
-        self._collect(dataloader_idx, batch, outputs["position"])
+        self._collect(dataloader_idx, batch, outputs["position"], outputs.get("detected"))
 
     def on_test_epoch_start(self) -> None:
         self._predictions = {}
@@ -289,13 +289,17 @@ class TrajectoryTask(L.LightningModule):
 
     # ------------------------------------------------------------------------------ predictions
 
-    def _collect(self, dataloader_idx: int, batch: dict[str, torch.Tensor], position: torch.Tensor) -> None:
+    def _collect(self, dataloader_idx: int, batch: dict[str, torch.Tensor], position: torch.Tensor,
+                 detected: torch.Tensor | None = None) -> None:
+        """Keep a batch's predictions; ``detected`` (B, bool) marks the windows a net measured (others held)."""
         self._predictions.setdefault(dataloader_idx, []).append({
             "sequence": batch["sequence"].cpu().numpy(),
             "time": batch["time"].cpu().numpy(),
             "position": position.detach().cpu().double().numpy(),
             "gt": batch["gt"].cpu().double().numpy(),
             "gt_valid": batch["gt_valid"].cpu().numpy(),
+            "detected": (np.ones(len(position), dtype=bool) if detected is None
+                         else detected.detach().cpu().numpy().astype(bool)),
         })
 
     def sequence_predictions(self, dataloader_idx: int = 0) -> dict[int, dict[str, np.ndarray]]:
@@ -312,15 +316,15 @@ class TrajectoryTask(L.LightningModule):
         return result
 
     def _log_smoothed(self) -> None:
-        from zoo.smoothing import make_smoother
+        from zoo.smoothing import make_smoother, smooth_detected
 
         smoother = make_smoother(**(self.hparams.smoother or {}))
         for dataloader_idx in sorted(self._predictions):
             metric = TrajectoryError().to(self.device)
             kept = self.smoothed_predictions.setdefault(dataloader_idx, {})
             for index, sequence in self.sequence_predictions(dataloader_idx).items():
-                t = sequence["time"]
-                smoothed = kept[index] = np.asarray(smoother.smooth(t, sequence["position"], t).mean)
+                smoothed = kept[index] = smooth_detected(smoother, sequence["time"], sequence["position"],
+                                                         sequence["detected"])
                 metric.update(torch.from_numpy(np.asarray(smoothed)), torch.from_numpy(sequence["gt"]),
                               torch.from_numpy(sequence["gt_valid"]))
             light = self._light("test", dataloader_idx)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.phase_bench import constant_errors, summarise
+from benchmarks.phase_bench import constant_errors, smooth_flights, summarise
+from zoo.smoothing import make_smoother, smooth_detected
 
 
 def test_constant_is_the_mean_ground_truth_of_the_other_flights():
@@ -27,3 +28,23 @@ def test_summary_splits_errors_by_detection_range_and_drone():
     assert result["E_0-10m"] == pytest.approx(1.0) and result["E_10-20m"] == pytest.approx(5.0)
     assert result["E_20-40m"] == pytest.approx(4.0) and result["share_10-20m"] == pytest.approx(0.5)
     assert result["E_avata"] == pytest.approx(6.0) and result["detected_avata"] == pytest.approx(0.5)
+
+
+def test_smooth_flights_smooths_each_flight_from_its_detections_in_time_order():
+    rng = np.random.default_rng(3)
+    times = np.tile(np.arange(60) / 10.0, 2)
+    sequence = np.repeat([0, 1], 60)
+    gt = np.stack([np.r_[np.linspace(0, 6, 60), np.linspace(5, -1, 60)], np.full(120, 15.0),
+                   np.full(120, 12.0)], axis=1)
+    position = gt + rng.normal(0, 0.5, gt.shape)
+    detected = rng.random(120) > 0.3
+    order = rng.permutation(120)
+    arrays = {"time": times[order], "sequence": sequence[order], "position": position[order],
+              "detected": detected[order]}
+    smoothed = smooth_flights(arrays, {"preset": "tuned", "horizon": 2.0})
+    smoother = make_smoother(preset="tuned", horizon=2.0)
+    for flight in (0, 1):
+        rows = np.flatnonzero(sequence == flight)
+        alone = smooth_detected(smoother, times[rows], position[rows], detected[rows])
+        back = np.argsort(order)[rows]  # where these rows went in the shuffled arrays
+        np.testing.assert_allclose(smoothed[back], alone, atol=1e-9)

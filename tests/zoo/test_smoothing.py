@@ -16,6 +16,7 @@ from zoo.smoothing import (
     GPSmoother,
     TrackFileError,
     fit_hyperparameters,
+    smooth_detected,
     smooth_predictions,
     smooth_track_file,
 )
@@ -310,6 +311,30 @@ def test_smooth_predictions_smooths_each_sequence_alone():
         np.testing.assert_allclose(out[name].mean, alone.mean, atol=1e-9)
     with pytest.raises(ValueError, match="one sequence id per timestamp"):
         smooth_predictions(t, y, ids[:-1])
+
+
+def test_smooth_detected_bridges_undetected_rows_and_keeps_them_beyond_the_horizon():
+    t, y, truth = noisy_track(300, seed=21, noise=0.5)
+    detected = np.ones(len(t), dtype=bool)
+    detected[100:130] = False  # a 3 s gap: the net held a stale position there
+    detected[200:] = False  # a 10 s tail without a detection
+    held = y.copy()
+    held[100:130] = y[99] + 20.0
+    held[200:] = 50.0
+    smoother = GPSmoother("tuned", horizon=2.0)
+    out = smooth_detected(smoother, t, held, detected)
+    gap_error = np.linalg.norm(out[100:130] - truth[100:130], axis=1).mean()
+    naive = np.asarray(smoother.smooth(t, held, t).mean)  # the held positions taken as measurements
+    assert gap_error < 2.0 < np.linalg.norm(naive[100:130] - truth[100:130], axis=1).mean()
+    bridged = smoother.smooth(t[detected], held[detected], t)
+    far = bridged.beyond_horizon
+    assert far[250:].all() and not far[100:130].any()
+    np.testing.assert_array_equal(out[far], held[far])  # no support there: the net's own output stays
+    # no flags, or fewer than two detections: every row is smoothed
+    np.testing.assert_allclose(smooth_detected(smoother, t, held, np.ones(len(t), bool)), naive)
+    few = np.zeros(len(t), dtype=bool)
+    few[5] = True
+    np.testing.assert_allclose(smooth_detected(smoother, t, held, few), naive)
 
 
 # -------------------------------------------------------------------------------------------- real data
