@@ -176,3 +176,28 @@ def test_srp_phat_skips_the_inside_of_the_array_and_can_fall_back_to_the_region_
     assert net._near(near, torch.as_tensor(mics)).flatten().tolist() == [True, False]
     with pytest.raises(ValueError, match="fallback"):
         get_model("srp_phat", fallback="last")
+
+
+def test_test_time_smoothing_bridges_the_windows_a_net_did_not_detect():
+    from zoo.smoothing import make_smoother, smooth_detected
+    from zoo.task import TrajectoryTask
+
+    task = TrajectoryTask(net="srp_phat", smooth=True, smoother={"preset": "tuned", "horizon": 3.0})
+    t = np.arange(80) / 10.0
+    gt = np.stack([np.linspace(0, 8, 80), np.full(80, 15.0), np.full(80, 12.0)], axis=1)
+    position = gt + np.random.default_rng(0).normal(0, 0.3, gt.shape)
+    detected = np.ones(80, dtype=bool)
+    detected[30:50] = False
+    position[30:50] = position[29]  # held
+    batch = {"sequence": torch.zeros(80, dtype=torch.long), "time": torch.from_numpy(t),
+             "gt": torch.from_numpy(gt), "gt_valid": torch.ones(80, dtype=torch.bool)}
+    task.log = lambda *args, **kwargs: None  # no trainer attached: the logged values are not looked at
+    task._light = lambda stage, dataloader_idx: "ideal"
+    task.on_test_epoch_start()
+    task._collect(0, batch, torch.from_numpy(position), torch.from_numpy(detected))
+    task._log_smoothed()
+    smoothed = task.smoothed_predictions[0][0]
+    expected = smooth_detected(make_smoother(preset="tuned", horizon=3.0), t, position, detected)
+    np.testing.assert_allclose(smoothed, expected)
+    held_error = np.linalg.norm(position[30:50] - gt[30:50], axis=1).mean()
+    assert np.linalg.norm(smoothed[30:50] - gt[30:50], axis=1).mean() < held_error / 2
