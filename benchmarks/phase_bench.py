@@ -67,8 +67,7 @@ def smooth_flights(arrays: dict[str, np.ndarray], smoother: dict) -> np.ndarray:
     smoothed = arrays["position"].astype(np.float64)
     made = make_smoother(**smoother)
     for sequence in np.unique(arrays["sequence"]):
-        rows = np.flatnonzero(arrays["sequence"] == sequence)
-        rows = rows[np.argsort(arrays["time"][rows], kind="stable")]
+        rows = np.flatnonzero(arrays["sequence"] == sequence)  # the smoothers take rows in any time order
         smoothed[rows] = smooth_detected(made, arrays["time"][rows], smoothed[rows], arrays["detected"][rows])
     return smoothed
 
@@ -138,11 +137,14 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     torch.set_num_threads(args.threads)
-    try:
-        net_kwargs = json.loads(args.net_kwargs)
-    except json.JSONDecodeError as error:
-        parser.error(f"--net-kwargs must be a JSON object of srp_phat arguments: {error}")
-    smoother = None if args.smoother is None else json.loads(args.smoother)
+    def json_option(text: str, flag: str, what: str) -> dict:
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as error:
+            parser.error(f"{flag} must be a JSON object of {what}: {error}")
+
+    net_kwargs = json_option(args.net_kwargs, "--net-kwargs", "srp_phat arguments")
+    smoother = None if args.smoother is None else json_option(args.smoother, "--smoother", "make_smoother arguments")
     result, arrays = run(args.data, args.recipe, net_kwargs, args.cache, smoother=smoother)
     print(format_table(result))
     if args.save is not None:

@@ -675,9 +675,9 @@ def smooth_detected(smoother, timestamps: np.ndarray, xyz: np.ndarray, detected:
     t = np.asarray(timestamps, dtype=np.float64)
     positions = np.asarray(xyz, dtype=np.float64)
     measured = np.asarray(detected, dtype=bool)
-    if int(measured.sum()) < 2 or measured.all():
-        return np.asarray(smoother.smooth(t, positions, t).mean)
-    track = smoother.smooth(t[measured], positions[measured], t)
+    if int(measured.sum()) < 2:
+        measured = np.ones(len(t), dtype=bool)
+    track = smoother.smooth(t[measured], positions[measured], t)  # every query is measured when all are
     return np.where(track.beyond_horizon[:, None], positions, np.asarray(track.mean))
 
 
