@@ -144,7 +144,19 @@ def _solve_flops(a_shape, b_shape, *args, out_shape=None, **kwargs) -> int:
     return 2 * math.prod(batch) * (n ** 3 // 3 + n * n * columns)
 
 
+def _mm_flops(a, b, *args, out_val=None, **kwargs) -> int:
+    """A matrix product; a sparse first factor (a fixed steering matrix) costs one MAC per stored entry and
+    column of the second. Gets the tensors themselves (``_get_raw``): shapes alone hide the entry count."""
+    if a.layout in (torch.sparse_csr, torch.sparse_coo):
+        entries = a._nnz() if a.layout == torch.sparse_coo else a.values().numel()
+        return 2 * entries * b.shape[-1]
+    return 2 * a.shape[0] * a.shape[1] * b.shape[1]
+
+
+_mm_flops._get_raw = True  # FlopCounterMode passes tensors, not shapes, to formulas marked so
+
 MAC_FORMULAS: dict[Any, Callable[..., int]] = {
+    aten.mm: _mm_flops,
     aten.linalg_vector_norm: _vector_norm_flops,
     aten._linalg_solve_ex: _solve_flops,
     aten.convolution: _conv_flops,

@@ -1,57 +1,180 @@
-"""A phase-aware student: position from the GCC-PHAT of every microphone pair, trained like the paper's.
+"""A phase-aware student: a learned heat map over the steered response of the microphone pairs.
 
-Why this shape. The position is a smooth function of the pair delays (three unknowns from six
-delays with four microphones), and each delay is the lag of a peak of that pair's correlation. So
-the net first reads every pair's correlation on every frame with one small 1D convolutional encoder
-over lags (shared by all pairs and frames: a peak means the same thing everywhere; max pooling keeps
-the strongest peak of each neighbourhood, and the flattened map keeps *where* it is, which is the
-delay). A learned embedding per pair then says which pair it was. The frames of a window are
-combined by their mean and their maximum (robust to a frame lost to a gust or masked by noise,
-without averaging the slowly drifting delays coherently). A multilayer perceptron maps the six pairs'
-features to the position: it can learn what no fixed geometry formula knows, e.g. which secondary
-peaks are the ground reflection's direct-to-image cross terms at this rig's microphone heights, and
-how far to trust a weak peak. Input: recipe ``gcc_phat`` (pairs x frames x lags); about 0.3 M
-parameters and 0.01 GMACs per window, so it runs far faster than real time on one core.
+Why this shape. The position information is in the pair delays, and which point in space explains a
+set of delays is geometry, not something to learn: the steered response power (SRP) of a point is
+the pairs' GCC-PHAT read at that point's delays (and, over the reflecting roof, at the delays of the
+ground-image paths), exactly as :mod:`zoo.nets.srp_phat` computes it. So the first layer is that
+fixed map: on a 3D grid of cubes over the flight region (1 m by default), every frame group's
+correlations are read at each cube's delays (max-pooled over the delays the cube spans), for the
+multipath and the direct-only terms; the groups' mean and maximum give four channels. What SRP-PHAT
+cannot do is learned: a small 3D convolutional net turns the map into a heat map, learning what a
+drone's response looks like against the failure modes (the diffuse ambient's coherence near the array,
+a ground-reflection cross term that is too sharp or too flat, a peak smeared along range at 20 m,
+evidence below a fixed detection threshold that is consistent over the frame groups). The position is
+the heat map's expectation over the cube centres (a soft arg-max, differentiable and sub-cell).
+
+Why it should generalise beyond its labels. The LiDAR teacher labels the nearer part of a flight
+(its pseudo-labels are biased to short range), and a net that regresses coordinates from features
+learns that prior. This net is fully convolutional and never sees a coordinate: it scores each cube
+by its neighbourhood of the response, the same function everywhere, so it learns the appearance of a
+source, not where the labelled sources were. Training: the task's position loss on the expectation,
+plus a cross-entropy of the heat map against a Gaussian around the target (``heatmap_weight``,
+``target_sigma``), which teaches the peak even while the expectation is still spread.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
+import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import nn
 
-from datamodules.features import mic_pairs, phase_recipe
+from datamodules.features import GccPhat, mic_pairs, split_frames
 from zoo.nets.base import TrajectoryNet
+from zoo.nets.srp_phat import SPEED_OF_SOUND, SRPPhat
 from zoo.registry import register_model
+
+#: windows of white noise that set each cube's null mean, and the rate they are made at
+NULL_WINDOWS, NULL_SAMPLE_RATE = 64, 48000.0
 
 
 @register_model("phase_student")
 class PhaseStudent(TrajectoryNet):
-    """Pair-correlation encoder, frame pooling and a position MLP (see the module docstring)."""
+    """Fixed SRP map on a 3D grid, a 3D CNN heat map and its soft arg-max (see the module docstring)."""
 
-    inputs = {"audio_phase": "gcc_phat"}
+    inputs = {"audio_phase": "gcc_phat_2s_static"}
     category = "self-supervised"
+    context_keys = ("mic_positions",)
 
-    def __init__(self, in_channels: int = 4, filters: int = 16, pair_features: int = 64, hidden: int = 256,
-                 dropout: float = 0.2, input_recipes: dict[str, str] | None = None):
+    def __init__(
+        self,
+        in_channels: int = 4,
+        mic_positions: str | list[list[float]] = "distributed4",
+        speed_of_sound: float = SPEED_OF_SOUND,
+        region_min: Sequence[float] = (-2.0, -5.0, 0.5),
+        region_max: Sequence[float] = (8.0, 25.0, 25.0),
+        step: float = 1.0,
+        frame_groups: int = 6,
+        ground_height: float | None = 0.0,
+        reflection_weight: float = 1.0,
+        min_range: float = 4.0,
+        channels: int = 12,
+        heatmap_weight: float = 1.0,
+        target_sigma: float = 1.0,
+        input_recipes: dict[str, str] | None = None,
+    ):
+        """Args:
+            mic_positions: the geometry used when a batch carries none (a preset name or channels x 3, m).
+            speed_of_sound, ground_height, reflection_weight, min_range: the steered response's physics,
+                as in :class:`zoo.nets.srp_phat.SRPPhat`.
+            region_min, region_max: the grid's region (m, rig frame); x and y follow the data's
+                ``bev_bounds`` when the task sets them.
+            step: the grid's cube side (m).
+            frame_groups: the window's frames are averaged in this many consecutive groups (each about
+                0.3 s for 23 frames: the delays drift little within one) before steering.
+            channels: width of the 3D convolutions.
+            heatmap_weight: weight of the heat map's cross-entropy against a Gaussian around the target.
+            target_sigma: that Gaussian's standard deviation (m).
+        """
         super().__init__(in_channels, input_recipes=input_recipes)
-        recipe = phase_recipe(self.inputs["audio_phase"])
-        self.pairs = len(mic_pairs(in_channels))
-        lags = recipe.num_lags()
-        self.encoder = nn.Sequential(
-            nn.Conv1d(1, filters // 2, 7, padding=3), nn.ReLU(), nn.MaxPool1d(4),
-            nn.Conv1d(filters // 2, filters, 7, padding=3), nn.ReLU(), nn.MaxPool1d(4),
-            nn.Flatten(), nn.Linear(filters * (lags // 16), pair_features), nn.ReLU(),
+        self.steering = SRPPhat(in_channels, mic_positions, speed_of_sound, region_min, region_max,
+                                ground_height=ground_height, reflection_weight=reflection_weight,
+                                min_range=min_range, input_recipes=self.inputs)
+        if step <= 0 or frame_groups < 1:
+            raise ValueError(f"phase_student: step must be > 0 and frame_groups >= 1, got {step}, {frame_groups}")
+        self.step, self.frame_groups = float(step), int(frame_groups)
+        self.heatmap_weight, self.target_sigma = float(heatmap_weight), float(target_sigma)
+        self.heatmap = nn.Sequential(
+            nn.Conv3d(4, channels, 3, padding=1), nn.ReLU(),
+            nn.Conv3d(channels, channels, 3, padding=2, dilation=2), nn.ReLU(),
+            nn.Conv3d(channels, channels, 3, padding=4, dilation=4), nn.ReLU(),
+            nn.Conv3d(channels, 1, 1),
         )
-        self.pair_embedding = nn.Parameter(torch.zeros(self.pairs, pair_features))
-        self.head = nn.Sequential(
-            nn.Linear(2 * pair_features * self.pairs, hidden), nn.ReLU(), nn.Dropout(dropout),
-            nn.Linear(hidden, hidden // 2), nn.ReLU(), nn.Linear(hidden // 2, 3),
-        )
+        self._null: dict[tuple, torch.Tensor] = {}
+
+    def set_bounds(self, bounds: list[list[float]] | torch.Tensor) -> None:
+        """Cover the data's bird's-eye area [[x_min, x_max], [y_min, y_max]] (m) with the grid."""
+        self.steering.set_bounds(bounds)
+
+    def grid(self) -> tuple[torch.Tensor, tuple[int, int, int]]:
+        """The cube centres (G x 3, x slowest, z fastest) and the grid's shape."""
+        axes = [torch.arange(float(lo) + self.step / 2, float(hi), self.step, dtype=torch.float64)
+                for lo, hi in self.steering.region]
+        return torch.cartesian_prod(*axes).float(), tuple(len(axis) for axis in axes)
+
+    def response(self, phase: torch.Tensor, mics_batch: torch.Tensor | None, points: torch.Tensor) -> torch.Tensor:
+        """The fixed first layer: B x pairs x frames x lags -> B x 4 x G, the multipath and direct responses'
+        mean and maximum over the frame groups, each as its excess over the null (white noise per
+        microphone) at that cube, standardised over the window's grid. A cube near the array spans many
+        delays, so its pooled response is high for noise too: without the null subtracted the map would
+        favour the array's surroundings. The standardisation makes the map's shape, not the source's
+        level, what the heat map reads (the level varies by tens of dB between drones and ranges)."""
+        b, p, f, _ = phase.shape
+        out = torch.empty(b, 4, points.shape[0])
+        geometries = [(self.steering.default_mics, torch.arange(b))]
+        if mics_batch is not None:
+            unique, inverse = torch.unique(mics_batch.detach().cpu().double(), dim=0, return_inverse=True)
+            geometries = [(unique[g], torch.nonzero(inverse == g).flatten()) for g in range(unique.shape[0])]
+        for mics, rows in geometries:
+            if mics.shape[0] != self.in_channels or len(mic_pairs(mics.shape[0])) != p:
+                raise ValueError(f"phase_student: {mics.shape[0]} mic positions for phase features of {p} pairs")
+            excess = self._raw_response(phase[rows].detach().cpu(), mics, points) - self.null_mean(mics, points, f)
+            centred = excess - excess.mean(dim=-1, keepdim=True)
+            out[rows] = centred / centred.std(dim=-1, keepdim=True).clamp_min(1e-6)
+        return out.to(phase.device)
+
+    def _raw_response(self, phase: torch.Tensor, mics: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """B x pairs x frames x lags -> B x 4 x G (multipath, direct; mean over groups, then maximum)."""
+        b, p, f, lags = phase.shape
+        groups = torch.stack([chunk.mean(dim=2) for chunk in
+                              torch.tensor_split(phase.float(), min(self.frame_groups, f), dim=2)], dim=1)
+        values = self.steering.grid_response(groups.reshape(-1, p, lags), points, mics, self.step)
+        values = values.reshape(b, groups.shape[1], 2, -1)
+        return torch.cat([values.mean(dim=1), values.amax(dim=1)], dim=1)
+
+    def null_mean(self, mics: torch.Tensor, points: torch.Tensor, frames: int) -> torch.Tensor:
+        """Per channel and cube (4 x G), the mean response to independent white noise per microphone
+        (``NULL_WINDOWS`` windows, seeded), computed once per geometry and grid."""
+        key = (mics.numpy().tobytes(), points.numpy().tobytes(), frames)
+        if key not in self._null:
+            recipe = self.steering.recipe
+            gcc = GccPhat(recipe, NULL_SAMPLE_RATE, mics.shape[0])
+            noise = np.random.default_rng(0).standard_normal((mics.shape[0], NULL_WINDOWS * frames * gcc.frame))
+            framed = split_frames(noise.astype(np.float32), gcc.frame, NULL_WINDOWS * frames)
+            with torch.no_grad():
+                correlation = gcc.correlate(gcc.cross_spectra(framed))  # P x (windows * frames) x L
+                phase = correlation.reshape(correlation.shape[0], NULL_WINDOWS, frames, -1).transpose(0, 1)
+                self._null[key] = self._raw_response(phase, mics, points).mean(dim=0)
+        return self._null[key]
+
+    def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
+        """Compute the null mean of the inputs' geometries (otherwise the first call does)."""
+        points = self.grid()[0]
+        mics = inputs.get("mic_positions")
+        frames = inputs["audio_phase"].shape[2]
+        for geometry in ([self.steering.default_mics] if mics is None
+                         else torch.unique(mics.detach().cpu().double(), dim=0)):
+            self.null_mean(geometry, points, frames)
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        phase = inputs["audio_phase"].float()  # B x P x F x L
-        b, p, f, lags = phase.shape
-        features = self.encoder(phase.reshape(b * p * f, 1, lags)).reshape(b, p, f, -1)
-        features = features + self.pair_embedding[None, :, None, :]
-        pooled = torch.cat([features.mean(dim=2), features.amax(dim=2)], dim=-1)  # B x P x 2D
-        return {"position": self.head(pooled.flatten(1))}
+        points, shape = self.grid()
+        with torch.no_grad():
+            volume = self.response(inputs["audio_phase"], inputs.get("mic_positions"), points)
+        logits = self.heatmap(volume.reshape(volume.shape[0], 4, *shape)).flatten(1)  # B x G
+        probability = logits.softmax(dim=1)
+        position = probability @ points.to(probability.device)
+        return {"position": position, "heatmap_logits": logits, "peak_probability": probability.amax(dim=1)}
+
+    def auxiliary_losses(self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor],
+                         target: torch.Tensor, target_valid: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Cross-entropy of the heat map against a normalised Gaussian around each valid target."""
+        terms = super().auxiliary_losses(outputs, batch, target, target_valid)
+        if self.heatmap_weight > 0 and target_valid.any():
+            points = self.grid()[0].to(target.device)
+            squared = torch.cdist(target[target_valid].float(), points).square()
+            wanted = torch.softmax(-squared / (2 * self.target_sigma ** 2), dim=1)
+            log_probability = F.log_softmax(outputs["heatmap_logits"][target_valid], dim=1)
+            terms["heatmap"] = self.heatmap_weight * -(wanted * log_probability).sum(dim=1).mean()
+        return terms

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 import math
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -58,7 +59,7 @@ MAX_COARSE_WIDTH = 32.0
 #: levels refined on a window's mean correlation before its rays are scanned over range
 WINDOW_LEVELS = 2
 #: the delay fit: lags searched around a candidate's delays, Gauss-Newton steps, damping, largest step (m)
-FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 8, 1e-3, 5.0
+FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 30, 1e-4, 5.0
 #: what an undetected window returns once the hold has expired
 FALLBACKS = ("mean", "centre")
 
@@ -88,7 +89,7 @@ class SRPPhat(TrajectoryNet):
         hold_seconds: float = 3.0,
         ground_height: float | None = 0.0,
         reflection_weight: float = 1.0,
-        refine_levels: int = 4,
+        refine_levels: int = 1,
         fit_delays: bool = True,
         min_range: float = 4.0,
         fallback: str = "mean",
@@ -411,6 +412,40 @@ class SRPPhat(TrajectoryNet):
             step = torch.linalg.solve(normal, -(jw.transpose(-1, -2) @ residual[..., None]))[..., 0]
             points = self._clamp(points + step.clamp(-FIT_MAX_STEP, FIT_MAX_STEP))
         return points
+
+    def grid_response(self, correlation: torch.Tensor, points: torch.Tensor, mics: torch.Tensor, step: float
+                      ) -> torch.Tensor:
+        """Steered response of correlations (N x pairs x lags) at the centres ``points`` (G x 3) of cubes of
+        side ``step``: N x 2 x G, the multipath response (direct and ground-image terms, as the search
+        scores it) and the direct terms alone. Each term reads its pair's correlation max-pooled over the
+        delays its cube spans, so a peak anywhere inside a cube is seen; points within ``min_range`` of
+        the array read 0. The reading is one sparse matrix product (2G x pooled columns, built once per
+        grid and geometry): about 100 times faster than gathering the terms on a CPU."""
+        key = (mics.numpy().tobytes(), points.numpy().tobytes(), float(step))
+        if getattr(self, "_steering_key", None) != key:
+            self._steering_key, self._steering = key, self._steering_matrix(points, mics, step)
+        pooled = self._pooled(correlation.to(torch.float32))
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+            values = (self._steering @ pooled.T).T  # N x 2G
+        return values.reshape(-1, 2, points.shape[0])
+
+    def _steering_matrix(self, points: torch.Tensor, mics: torch.Tensor, step: float) -> torch.Tensor:
+        """The sparse (CSR) matrix whose row g reads point g's multipath response from the flattened pooled
+        correlations, and row G + g its direct response (a term outside the lags or merged reads nothing)."""
+        columns = self._columns(points, mics, step)  # G x terms, -1: reads nothing
+        pairs = len(mic_pairs(mics.shape[0]))
+        weights = self._terms(mics.shape[0])[3]
+        count = points.shape[0]
+        direct = torch.cat([torch.ones(pairs), torch.zeros(len(weights) - pairs)]) / pairs
+        rows = torch.arange(2 * count)[:, None].expand(-1, columns.shape[1])
+        values = torch.stack([weights / weights.sum(), direct])[:, None, :].expand(-1, count, -1).reshape(2 * count, -1)
+        used = (torch.cat([columns, columns]) >= 0) & (values > 0)
+        size = (2 * count, len(POOL_WIDTHS) * pairs * self.recipe.num_lags() + 1)
+        indices = torch.stack([rows[used], torch.cat([columns, columns])[used]])
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+            return torch.sparse_coo_tensor(indices, values[used], size).coalesce().to_sparse_csr()
 
     @staticmethod
     def _pooled(corr: torch.Tensor) -> torch.Tensor:
