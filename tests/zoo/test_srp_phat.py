@@ -245,5 +245,5 @@ def test_phase_student_reads_the_batch_geometry_and_refuses_a_wrong_one():
         moved = student({**inputs, "mic_positions": mics + torch.tensor([0.0, 0.0, 0.5])})["position"]
     torch.testing.assert_close(same, default)
     assert not torch.allclose(moved, default)
-    with pytest.raises(ValueError, match="3 mic positions for phase features of 6 pairs"):
+    with pytest.raises(ValueError, match="phase_student: 3 mic positions for phase features of 6 pairs"):
         student({**inputs, "mic_positions": mics[:, :3]})

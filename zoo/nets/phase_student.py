@@ -31,7 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from datamodules.features import GccPhat, mic_pairs, split_frames
+from datamodules.features import GccPhat, split_frames
 from zoo.nets.base import TrajectoryNet
 from zoo.nets.srp_phat import SPEED_OF_SOUND, SRPPhat
 from zoo.registry import register_model
@@ -93,16 +93,20 @@ class PhaseStudent(TrajectoryNet):
             nn.Conv3d(channels, 1, 1),
         )
         self._null: dict[tuple, torch.Tensor] = {}
+        self._grid: tuple[torch.Tensor, tuple[int, int, int]] | None = None
 
     def set_bounds(self, bounds: list[list[float]] | torch.Tensor) -> None:
         """Cover the data's bird's-eye area [[x_min, x_max], [y_min, y_max]] (m) with the grid."""
         self.steering.set_bounds(bounds)
+        self._grid = None
 
     def grid(self) -> tuple[torch.Tensor, tuple[int, int, int]]:
-        """The cube centres (G x 3, x slowest, z fastest) and the grid's shape."""
-        axes = [torch.arange(float(lo) + self.step / 2, float(hi), self.step, dtype=torch.float64)
-                for lo, hi in self.steering.region]
-        return torch.cartesian_prod(*axes).float(), tuple(len(axis) for axis in axes)
+        """The cube centres (G x 3, x slowest, z fastest) and the grid's shape, built once per region."""
+        if self._grid is None:
+            axes = [torch.arange(float(lo) + self.step / 2, float(hi), self.step, dtype=torch.float64)
+                    for lo, hi in self.steering.region]
+            self._grid = (torch.cartesian_prod(*axes).float(), tuple(len(axis) for axis in axes))
+        return self._grid
 
     def response(self, phase: torch.Tensor, mics_batch: torch.Tensor | None, points: torch.Tensor) -> torch.Tensor:
         """The fixed first layer: B x pairs x frames x lags -> B x 4 x G, the multipath and direct responses'
@@ -111,16 +115,10 @@ class PhaseStudent(TrajectoryNet):
         delays, so its pooled response is high for noise too: without the null subtracted the map would
         favour the array's surroundings. The standardisation makes the map's shape, not the source's
         level, what the heat map reads (the level varies by tens of dB between drones and ranges)."""
-        b, p, f, _ = phase.shape
-        out = torch.empty(b, 4, points.shape[0])
-        geometries = [(self.steering.default_mics, torch.arange(b))]
-        if mics_batch is not None:
-            unique, inverse = torch.unique(mics_batch.detach().cpu().double(), dim=0, return_inverse=True)
-            geometries = [(unique[g], torch.nonzero(inverse == g).flatten()) for g in range(unique.shape[0])]
-        for mics, rows in geometries:
-            if mics.shape[0] != self.in_channels or len(mic_pairs(mics.shape[0])) != p:
-                raise ValueError(f"phase_student: {mics.shape[0]} mic positions for phase features of {p} pairs")
-            excess = self._raw_response(phase[rows].detach().cpu(), mics, points) - self.null_mean(mics, points, f)
+        out = torch.empty(phase.shape[0], 4, points.shape[0])
+        for mics, rows in self.steering.geometry_groups(phase, mics_batch, self.model_name):
+            excess = self._raw_response(phase[rows].detach().cpu(), mics, points)
+            excess = excess - self.null_mean(mics, points, phase.shape[2])
             centred = excess - excess.mean(dim=-1, keepdim=True)
             out[rows] = centred / centred.std(dim=-1, keepdim=True).clamp_min(1e-6)
         return out.to(phase.device)
@@ -151,12 +149,9 @@ class PhaseStudent(TrajectoryNet):
 
     def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
         """Compute the null mean of the inputs' geometries (otherwise the first call does)."""
-        points = self.grid()[0]
-        mics = inputs.get("mic_positions")
-        frames = inputs["audio_phase"].shape[2]
-        for geometry in ([self.steering.default_mics] if mics is None
-                         else torch.unique(mics.detach().cpu().double(), dim=0)):
-            self.null_mean(geometry, points, frames)
+        phase = inputs["audio_phase"]
+        for geometry, _ in self.steering.geometry_groups(phase, inputs.get("mic_positions"), self.model_name):
+            self.null_mean(geometry, self.grid()[0], phase.shape[2])
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         points, shape = self.grid()

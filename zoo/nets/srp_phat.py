@@ -145,6 +145,8 @@ class SRPPhat(TrajectoryNet):
         self._thresholds: dict[bytes, float] = {}
         self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._tracks: dict[int, dict] = {}  #: sequence index -> hold/fallback memory
+        self._steering_key: tuple | None = None  #: geometry, grid and step of the cached steering matrix
+        self._steering: torch.Tensor | None = None
 
     # ------------------------------------------------------------------------------ configuration
 
@@ -422,7 +424,7 @@ class SRPPhat(TrajectoryNet):
         the array read 0. The reading is one sparse matrix product (2G x pooled columns, built once per
         grid and geometry): about 100 times faster than gathering the terms on a CPU."""
         key = (mics.numpy().tobytes(), points.numpy().tobytes(), float(step))
-        if getattr(self, "_steering_key", None) != key:
+        if self._steering_key != key:
             self._steering_key, self._steering = key, self._steering_matrix(points, mics, step)
         pooled = self._pooled(correlation.to(torch.float32))
         with warnings.catch_warnings():
@@ -482,10 +484,25 @@ class SRPPhat(TrajectoryNet):
 
     def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
         """Compute the coarse grid and detection threshold of the inputs' geometry (otherwise the first call does)."""
-        mics = inputs.get("mic_positions")
-        for geometry in ([self.default_mics] if mics is None else torch.unique(mics.detach().cpu().double(), dim=0)):
+        for geometry, _ in self.geometry_groups(inputs["audio_phase"], inputs.get("mic_positions")):
             self._coarse_grid(geometry)
             self.threshold(geometry)
+
+    def geometry_groups(self, phase: torch.Tensor, mics_batch: torch.Tensor | None, model: str | None = None
+                        ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The batch's distinct microphone geometries (channels x 3, float64) and the rows of each; the
+        default geometry for all rows when the batch carries none. Raises ValueError, naming ``model``
+        (default: this net), when a geometry does not fit the phase features (B x pairs x frames x lags)."""
+        groups = [(self.default_mics, torch.arange(phase.shape[0]))]
+        if mics_batch is not None:
+            unique, inverse = torch.unique(mics_batch.detach().cpu().double(), dim=0, return_inverse=True)
+            groups = [(unique[g], torch.nonzero(inverse == g).flatten()) for g in range(unique.shape[0])]
+        pairs = phase.shape[1]
+        for mics, _ in groups:
+            if mics.shape[0] != self.in_channels or len(mic_pairs(mics.shape[0])) != pairs:
+                raise ValueError(f"{model or self.model_name}: {mics.shape[0]} mic positions for phase features of "
+                                 f"{pairs} pairs")
+        return groups
 
     # ------------------------------------------------------------------------------ forward
 
@@ -496,14 +513,8 @@ class SRPPhat(TrajectoryNet):
         positions = torch.empty(b, 3)
         scores = torch.empty(b)
         detected = torch.empty(b, dtype=torch.bool)
-        groups = [(self.default_mics, torch.arange(b))]
-        if mics_batch is not None:
-            unique, inverse = torch.unique(mics_batch.detach().cpu().double(), dim=0, return_inverse=True)
-            groups = [(unique[g], torch.nonzero(inverse == g).flatten()) for g in range(unique.shape[0])]
         with torch.no_grad():
-            for mics, rows in groups:
-                if mics.shape[0] != self.in_channels or len(mic_pairs(mics.shape[0])) != p:
-                    raise ValueError(f"srp_phat: {mics.shape[0]} mic positions for phase features of {p} pairs")
+            for mics, rows in self.geometry_groups(phase, mics_batch):
                 if mics.numpy().tobytes() not in self._thresholds:
                     self._check_region(mics)
                 threshold = self.threshold(mics)
