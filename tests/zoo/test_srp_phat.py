@@ -128,7 +128,7 @@ def test_srp_phat_holds_then_falls_back_to_the_sequence_mean(net):
     windows = [_render(s, mics, RECIPE.span_seconds + 0.01, seed=i) for i, s in enumerate(seen)]
     windows += [rng.standard_normal(windows[0].shape)] * 2  # nothing coherent afterwards
     features = torch.stack([phase_features(w, RATE, RECIPE) for w in windows])
-    times = torch.tensor([10.0, 10.1, 11.0, 20.0], dtype=torch.float64)
+    times = torch.tensor([10.0, 10.1, 11.0, 30.0], dtype=torch.float64)
     with torch.no_grad():
         out = net({"audio_phase": features, "time": times, "sequence": torch.zeros(4, dtype=torch.long)})
     position = out["position"].numpy()

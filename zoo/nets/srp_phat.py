@@ -86,7 +86,7 @@ class SRPPhat(TrajectoryNet):
         frame_candidates: int = 4,
         false_alarm: float = 0.01,
         null_windows: int = 300,
-        hold_seconds: float = 3.0,
+        hold_seconds: float = 10.0,
         ground_height: float | None = 0.0,
         reflection_weight: float = 1.0,
         refine_levels: int = 1,
