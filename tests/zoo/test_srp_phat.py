@@ -137,6 +137,38 @@ def test_srp_phat_holds_then_falls_back_to_the_sequence_mean(net):
     np.testing.assert_allclose(position[3], position[:2].mean(axis=0), atol=1e-5)  # then the mean of detections
 
 
+def test_srp_phat_search_groups_give_each_frame_its_own_group_candidates():
+    """Frames of a window that hear one source, then another: with a group per half every frame fits
+    the source of its own half."""
+    net = get_model("srp_phat", null_windows=60, search_groups=2, frame_candidates=1, ground_height=None)
+    mics = distributed4()
+    first, second = np.array([3.0, 8.0, 4.0]), np.array([-2.0, 9.0, 6.0])
+    features = [phase_features(_render(s, mics, RECIPE.span_seconds + 0.01, seed=i), RATE, RECIPE)
+                for i, s in enumerate((first, second))]
+    half = RECIPE.frames // 2
+    window = torch.cat([features[0][:, :half], features[1][:, half:]], dim=1)  # pairs x frames x lags
+    with torch.no_grad():
+        points, _ = net._search(window.permute(1, 0, 2)[None].float(), torch.as_tensor(mics))
+    assert np.linalg.norm(points[0, :half].numpy() - first, axis=1).max() < 0.5
+    assert np.linalg.norm(points[0, half:].numpy() - second, axis=1).max() < 0.5
+
+
+def test_srp_phat_counts_a_detection_only_when_the_previous_one_confirms_it():
+    net = get_model("srp_phat", null_windows=60, fallback="centre", confirm_seconds=2.0, confirm_distance=5.0)
+    mics = distributed4()
+    near, far = np.array([3.0, 5.0, 3.0]), np.array([-1.0, 20.0, 12.0])
+    windows = [_render(s, mics, RECIPE.span_seconds + 0.01, seed=i) for i, s in enumerate((near, near, far))]
+    features = torch.stack([phase_features(w, RATE, RECIPE) for w in windows])
+    times = torch.tensor([10.0, 10.5, 11.0], dtype=torch.float64)
+    with torch.no_grad():
+        out = net({"audio_phase": features, "time": times, "sequence": torch.zeros(3, dtype=torch.long)})
+    position = out["position"].numpy()
+    assert out["detected"].tolist() == [False, True, False]  # the first is alone, the third 16 m from the second
+    np.testing.assert_allclose(position[0], net.region.mean(dim=1).numpy(), atol=1e-5)
+    assert np.linalg.norm(position[1] - near) < 0.5
+    np.testing.assert_allclose(position[2], position[1])  # the unconfirmed far detection is not taken: held
+
+
 def test_a_region_far_from_the_microphones_is_warned_about(caplog):
     net = get_model("srp_phat", region_min=(100.0, 100.0, 0.5), region_max=(120.0, 130.0, 25.0), null_windows=10)
     noise = np.random.default_rng(3).standard_normal((4, int(RECIPE.span_seconds * RATE) + 10))

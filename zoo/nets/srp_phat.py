@@ -11,7 +11,9 @@ array are not searched (the diffuse ambient's coherence peaks there). The
 point of highest response is found coarse to fine: a grid over the flight region, where each cell
 scores the largest correlation over the range of delays its volume spans (cells are split near the
 array, where they span more), then cubes of half the step around the best cells, all on the
-window's mean correlation; then, per frame, each of the best candidates is fitted to the delays of
+window's mean correlation (or on each of ``search_groups`` consecutive groups of its frames, whose
+candidates serve that group's frames: a near drone's delays move too far in 2 s for one mean); then,
+per frame, each of the best candidates is fitted to the delays of
 that frame's correlation peaks near its own (Gauss-Newton), which resolves range from the
 wavefront's curvature where a grid step could not, then hill-climbed on the frame's exact
 response (linear interpolation between lags).
@@ -20,7 +22,9 @@ A frame counts as a detection when its peak response exceeds a threshold set fro
 the same search on independent white noise per microphone (nothing coherent, like channels shifted
 apart by seconds): the quantile ``1 - false_alarm`` of the best frame of each null window, so
 ``false_alarm`` is a share of windows at any frame count; no ground truth is involved. A window's
-position is the coordinate-wise median of its detected frames. When no
+position is the coordinate-wise median of its detected frames. With ``confirm_seconds``, a detected
+window counts only when the sequence's previous detection is that recent and near (two detections
+confirm a track), so an isolated false detection is neither output nor held. When no
 frame of a window is detected, the last detected position of the same sequence is held for
 ``hold_seconds``, then the mean of the sequence's detections so far (``fallback: mean``) or the
 search region's centre (``fallback: centre``) is returned (the centre before the first detection).
@@ -84,9 +88,12 @@ class SRPPhat(TrajectoryNet):
         fine_step: float = 0.0625,
         candidates: int = 32,
         frame_candidates: int = 4,
+        search_groups: int = 1,
         false_alarm: float = 0.01,
         null_windows: int = 300,
         hold_seconds: float = 10.0,
+        confirm_seconds: float = 0.0,
+        confirm_distance: float = 5.0,
         ground_height: float | None = 0.0,
         reflection_weight: float = 1.0,
         refine_levels: int = 1,
@@ -104,9 +111,16 @@ class SRPPhat(TrajectoryNet):
                 ``fine_step``.
             candidates: best cells kept at each level of a window's search.
             frame_candidates: best cells kept per frame before the exact last level.
+            search_groups: the grid levels search this many consecutive groups of a window's frames
+                (each on its frames' mean correlation) and each frame fits its own group's candidates;
+                1: the whole window's mean.
             false_alarm: share of null windows allowed over each detection threshold.
             null_windows: windows of white noise that set the thresholds.
             hold_seconds: how long a sequence keeps its last detection before falling back to its mean.
+            confirm_seconds, confirm_distance: a detection counts only when the sequence's previous one
+                lies within ``confirm_seconds`` before it and ``confirm_distance`` (m) of it (a track is
+                confirmed by two detections, as radar trackers confirm tracks), so an isolated false
+                detection is neither output nor held; 0 s: every detection counts.
             ground_height: z (m, rig frame) of the reflecting ground plane (the roof surface is z = 0 in
                 the rig frame), or None for free-field steering. Each pair's correlation then holds, besides
                 the direct-direct peak, peaks where the ground image of one or both paths meets the other:
@@ -131,9 +145,12 @@ class SRPPhat(TrajectoryNet):
         if self.region.shape != (3, 2) or bool((self.region[:, 0] >= self.region[:, 1]).any()):
             raise ValueError(f"srp_phat region must be 3 mins below 3 maxes, got {region_min} {region_max}")
         self.coarse_step, self.fine_step = float(coarse_step), float(fine_step)
-        self.frame_candidates = int(frame_candidates)
+        self.frame_candidates, self.search_groups = int(frame_candidates), int(search_groups)
+        if self.search_groups < 1:
+            raise ValueError(f"srp_phat: search_groups must be >= 1, got {search_groups}")
         self.candidates, self.false_alarm, self.null_windows = int(candidates), float(false_alarm), int(null_windows)
         self.hold_seconds = float(hold_seconds)
+        self.confirm_seconds, self.confirm_distance = float(confirm_seconds), float(confirm_distance)
         self.ground_height = None if ground_height is None else float(ground_height)
         self.reflection_weight = float(reflection_weight)
         self.refine_levels = int(refine_levels)
@@ -333,14 +350,15 @@ class SRPPhat(TrajectoryNet):
     def _search(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags).
 
-        The grid levels search each window once, on its frames' mean correlation (non-coherent, so
-        the slow drift of the delays within a window does not cancel it); then each frame fits the
-        window's best candidates to its own pair delays, refines them on its exact response and keeps
-        the best.
+        The grid levels search each window (or each of its ``search_groups`` groups of frames) on its
+        frames' mean correlation (non-coherent, so the slow drift of the delays does not cancel it);
+        then each frame fits its window's (group's) best candidates to its own pair delays, refines them
+        on its exact response and keeps the best.
         """
         b, f, p, lags = correlation.shape
         corr = correlation.to(torch.float32)
-        mean = corr.mean(dim=1)
+        groups = torch.tensor_split(torch.arange(f), min(self.search_groups, f))
+        mean = torch.stack([corr[:, rows].mean(dim=1) for rows in groups], dim=1).reshape(-1, p, lags)
         grid, sides, columns = self._coarse_grid(mics)
         k = min(self.candidates, grid.shape[0])
         flat = self._pooled(mean)
@@ -348,11 +366,12 @@ class SRPPhat(TrajectoryNet):
         points, steps = grid[best.indices], sides[best.indices]
         for _ in range(WINDOW_LEVELS):
             points, steps, _ = self._refine(flat, points, steps, mics, k)
-        points = points[:, : self.frame_candidates]
-        # per frame: fit the candidate to the pair delays measured near its own, then refine it on the
-        # exact (multipath) response
+        points = points[:, : self.frame_candidates].reshape(b, len(groups), -1, 3)
+        # per frame: fit its group's candidates to the pair delays measured near their own, then refine
+        # them on the exact (multipath) response
         frames = corr.reshape(b * f, p, lags)
-        points = points.repeat_interleave(f, dim=0)
+        group_of_frame = torch.cat([torch.full((len(rows),), g) for g, rows in enumerate(groups)])
+        points = points[:, group_of_frame].reshape(b * f, -1, 3)
         if self.fit_delays:
             points = self._fit_delays(frames, points, mics)
         points, scores = self._refine_exact(frames, points, mics)
@@ -530,6 +549,8 @@ class SRPPhat(TrajectoryNet):
 
     def _hold_or_fallback(self, positions: torch.Tensor, detected: torch.Tensor, sequence: torch.Tensor | None,
                           time: torch.Tensor | None) -> torch.Tensor:
+        """Positions with the hold and fallback applied; with ``confirm_seconds``, unconfirmed detections are
+        also cleared in ``detected`` (in place)."""
         centre = self.region.mean(dim=1).float()
         if sequence is None or time is None:
             return torch.where(detected[:, None], positions, centre)
@@ -537,8 +558,14 @@ class SRPPhat(TrajectoryNet):
         for i, (seq, t) in enumerate(zip(sequence.tolist(), time.tolist(), strict=True)):
             track = self._tracks.get(seq)
             if track is None or t < track["time"]:  # a new sequence, or the same one again from its start
-                track = self._tracks[seq] = {"time": t, "last": None, "last_time": -math.inf, "sum": 0.0, "count": 0}
+                track = self._tracks[seq] = {"time": t, "last": None, "last_time": -math.inf, "sum": 0.0, "count": 0,
+                                             "previous": None}
             track["time"] = t
+            if bool(detected[i]) and self.confirm_seconds > 0:
+                previous, track["previous"] = track["previous"], (t, positions[i])
+                confirmed = previous is not None and t - previous[0] <= self.confirm_seconds and \
+                    float(torch.linalg.vector_norm(positions[i] - previous[1])) <= self.confirm_distance
+                detected[i] = confirmed
             if bool(detected[i]):
                 track.update(last=positions[i], last_time=t, sum=track["sum"] + positions[i], count=track["count"] + 1)
             elif track["last"] is not None and t - track["last_time"] <= self.hold_seconds:
