@@ -41,7 +41,8 @@ from __future__ import annotations
 import logging
 import math
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -67,6 +68,14 @@ FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 30, 1e-4, 5.0
 #: what an undetected window returns once the hold has expired
 FALLBACKS = ("mean", "centre")
 
+
+
+@contextmanager
+def _sparse_warnings_ignored() -> Iterator[None]:
+    """Silence torch's beta-support warnings for sparse tensors."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        yield
 
 @register_model("srp_phat")
 class SRPPhat(TrajectoryNet):
@@ -446,8 +455,7 @@ class SRPPhat(TrajectoryNet):
         if self._steering_key != key:
             self._steering_key, self._steering = key, self._steering_matrix(points, mics, step)
         pooled = self._pooled(correlation.to(torch.float32))
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        with _sparse_warnings_ignored():
             values = (self._steering @ pooled.T).T  # N x 2G
         return values.reshape(-1, 2, points.shape[0])
 
@@ -464,8 +472,7 @@ class SRPPhat(TrajectoryNet):
         used = (torch.cat([columns, columns]) >= 0) & (values > 0)
         size = (2 * count, len(POOL_WIDTHS) * pairs * self.recipe.num_lags() + 1)
         indices = torch.stack([rows[used], torch.cat([columns, columns])[used]])
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
+        with _sparse_warnings_ignored():
             return torch.sparse_coo_tensor(indices, values[used], size).coalesce().to_sparse_csr()
 
     @staticmethod
@@ -543,18 +550,18 @@ class SRPPhat(TrajectoryNet):
                 positions[rows] = masked.nanmedian(dim=1).values
                 scores[rows] = peak.max(dim=1).values / threshold
                 detected[rows] = hit.any(dim=1)
-        positions = self._hold_or_fallback(positions, detected, inputs.get("sequence"), inputs.get("time"))
+        positions, detected = self._hold_or_fallback(positions, detected, inputs.get("sequence"), inputs.get("time"))
         return {"position": positions.to(phase.dtype).to(phase.device),
                 "detection_score": scores.to(phase.dtype).to(phase.device), "detected": detected.to(phase.device)}
 
     def _hold_or_fallback(self, positions: torch.Tensor, detected: torch.Tensor, sequence: torch.Tensor | None,
-                          time: torch.Tensor | None) -> torch.Tensor:
-        """Positions with the hold and fallback applied; with ``confirm_seconds``, unconfirmed detections are
-        also cleared in ``detected`` (in place)."""
+                          time: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Positions with the hold and fallback applied, and the detections that count (with
+        ``confirm_seconds``, the confirmed ones)."""
         centre = self.region.mean(dim=1).float()
         if sequence is None or time is None:
-            return torch.where(detected[:, None], positions, centre)
-        out = positions.clone()
+            return torch.where(detected[:, None], positions, centre), detected
+        out, detected = positions.clone(), detected.clone()
         for i, (seq, t) in enumerate(zip(sequence.tolist(), time.tolist(), strict=True)):
             track = self._tracks.get(seq)
             if track is None or t < track["time"]:  # a new sequence, or the same one again from its start
@@ -574,4 +581,4 @@ class SRPPhat(TrajectoryNet):
                 out[i] = track["sum"] / track["count"]
             else:
                 out[i] = centre
-        return out
+        return out, detected
