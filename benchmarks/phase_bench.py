@@ -72,17 +72,26 @@ def smooth_flights(arrays: dict[str, np.ndarray], smoother: dict) -> np.ndarray:
     return smoothed
 
 
+def test_module(data: list[Path], recipe: str, cache: Path | None, batch_size: int = 64,
+                label_rate: float | None = None) -> MMAUDDataModule:
+    """A DataModule, set up, whose test split is every recording under ``data``, with the phase ``recipe``
+    (its features made through the cache) and windows at ``label_rate`` (default: the DataModule's)."""
+    stems = [path.stem for path in discover([str(d) for d in data])]
+    rate = {} if label_rate is None else {"label_rate": label_rate}
+    module = MMAUDDataModule([str(d) for d in data], split={"train": [], "val": [], "test": stems},
+                             inputs={"audio_phase": recipe}, test_lights=["ideal"], batch_size=batch_size,
+                             cache_dir=None if cache is None else str(cache), **rate)
+    module.setup("test")
+    return module
+
+
 def run(data: list[Path], recipe: str, net_kwargs: dict, cache: Path | None, batch_size: int = 64,
         smoother: dict | None = None) -> tuple[dict[str, float], dict[str, np.ndarray]]:
     """Evaluate ``srp_phat`` on every recording under ``data``; the summary and the per-window arrays.
     With ``smoother`` (:func:`zoo.smoothing.make_smoother` arguments), ``E_smooth`` is the error of the
     detected windows' smoothed track."""
-    stems = [path.stem for path in discover([str(d) for d in data])]
-    module = MMAUDDataModule([str(d) for d in data], split={"train": [], "val": [], "test": stems},
-                             inputs={"audio_phase": recipe}, test_lights=["ideal"], batch_size=batch_size,
-                             cache_dir=None if cache is None else str(cache))
     start = time.perf_counter()
-    module.setup("test")
+    module = test_module(data, recipe, cache, batch_size)
     feature_seconds = time.perf_counter() - start
     net = get_model("srp_phat", input_recipes={"audio_phase": recipe}, **net_kwargs)
     net.set_bounds(module.hparams.bev_bounds)

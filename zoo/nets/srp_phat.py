@@ -322,7 +322,7 @@ class SRPPhat(TrajectoryNet):
         values = flat[rows, columns]
         return (values * (weights / weights.sum())).sum(dim=-1)
 
-    def _exact(self, correlation: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
+    def response(self, correlation: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
         """Steered response (N x K) of correlations (N x P x L) at ``points`` (N x K x 3): the weighted mean
         over terms, linearly interpolated between lags."""
         lags = correlation.shape[-1]
@@ -357,12 +357,21 @@ class SRPPhat(TrajectoryNet):
         return torch.maximum(torch.minimum(points, self.region[:, 1].float()), self.region[:, 0].float())
 
     def _search(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags).
+        """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags):
+        the best of its :meth:`fitted_candidates`."""
+        points, scores = self.fitted_candidates(correlation, mics)
+        top = scores.argmax(dim=-1, keepdim=True)  # B x F x 1
+        best = torch.gather(points, 2, top[..., None].expand(-1, -1, 1, 3))[:, :, 0]
+        return best, torch.gather(scores, 2, top)[..., 0]
+
+    def fitted_candidates(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every frame's ``frame_candidates`` fitted points (B x F x K x 3) and their exact responses
+        (B x F x K), for windows of correlations B x F x pairs x lags.
 
         The grid levels search each window (or each of its ``search_groups`` groups of frames) on its
         frames' mean correlation (non-coherent, so the slow drift of the delays does not cancel it);
-        then each frame fits its window's (group's) best candidates to its own pair delays, refines them
-        on its exact response and keeps the best.
+        then each frame fits its window's (group's) best candidates to its own pair delays and refines them
+        on its exact response.
         """
         b, f, p, lags = correlation.shape
         corr = correlation.to(torch.float32)
@@ -384,9 +393,7 @@ class SRPPhat(TrajectoryNet):
         if self.fit_delays:
             points = self._fit_delays(frames, points, mics)
         points, scores = self._refine_exact(frames, points, mics)
-        top = scores.argmax(dim=1)
-        rows = torch.arange(b * f)
-        return points[rows, top].reshape(b, f, 3), scores[rows, top].reshape(b, f)
+        return points.reshape(b, f, -1, 3), scores.reshape(b, f, -1)
 
     def _refine_exact(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -398,10 +405,10 @@ class SRPPhat(TrajectoryNet):
         for level in reversed(range(self.refine_levels)):
             step = self.fine_step * 2 ** level
             children = self._clamp(points[:, :, None, :] + offsets * step)  # N x K x 27 x 3
-            scores = self._exact(frames, children.reshape(n, -1, 3), mics).reshape(n, k, -1)
+            scores = self.response(frames, children.reshape(n, -1, 3), mics).reshape(n, k, -1)
             best = scores.argmax(dim=-1)
             points = torch.gather(children, 2, best[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
-        return points, self._exact(frames, points, mics)
+        return points, self.response(frames, points, mics)
 
     def _fit_delays(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
         """Move each candidate (N x K x 3) to the point whose pair delays best match the frame's.
@@ -546,18 +553,24 @@ class SRPPhat(TrajectoryNet):
                 threshold = self.threshold(mics)
                 points, peak = self._search(phase[rows].detach().cpu().permute(0, 2, 1, 3), mics)
                 hit = peak > threshold
-                masked = torch.where(hit[..., None], points, torch.full_like(points, float("nan")))
-                positions[rows] = masked.nanmedian(dim=1).values
+                positions[rows] = self.window_positions(points, hit)
                 scores[rows] = peak.max(dim=1).values / threshold
                 detected[rows] = hit.any(dim=1)
-        positions, detected = self._hold_or_fallback(positions, detected, inputs.get("sequence"), inputs.get("time"))
+        positions, detected = self.hold_or_fallback(positions, detected, inputs.get("sequence"), inputs.get("time"))
         return {"position": positions.to(phase.dtype).to(phase.device),
                 "detection_score": scores.to(phase.dtype).to(phase.device), "detected": detected.to(phase.device)}
 
-    def _hold_or_fallback(self, positions: torch.Tensor, detected: torch.Tensor, sequence: torch.Tensor | None,
-                          time: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Positions with the hold and fallback applied, and the detections that count (with
-        ``confirm_seconds``, the confirmed ones)."""
+    @staticmethod
+    def window_positions(points: torch.Tensor, hit: torch.Tensor) -> torch.Tensor:
+        """A window's position (B x 3) from its frames' points (B x F x 3): the coordinate-wise median of the
+        frames that ``hit`` (B x F) marks detected; NaN where none is."""
+        return torch.where(hit[..., None], points, torch.full_like(points, float("nan"))).nanmedian(dim=1).values
+
+    def hold_or_fallback(self, positions: torch.Tensor, detected: torch.Tensor, sequence: torch.Tensor | None,
+                         time: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Positions (B x 3, NaN where not ``detected``) with the hold and fallback applied, and the
+        detections that count (with ``confirm_seconds``, the confirmed ones). Windows of a sequence come in
+        time order; a sequence whose time goes back starts afresh."""
         centre = self.region.mean(dim=1).float()
         if sequence is None or time is None:
             return torch.where(detected[:, None], positions, centre), detected
