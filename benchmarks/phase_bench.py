@@ -72,7 +72,7 @@ def smooth_flights(arrays: dict[str, np.ndarray], smoother: dict) -> np.ndarray:
     return smoothed
 
 
-def test_module(data: list[Path], recipe: str, cache: Path | None, batch_size: int = 64,
+def recordings_module(data: list[Path], recipe: str, cache: Path | None, batch_size: int = 64,
                 label_rate: float | None = None) -> MMAUDDataModule:
     """A DataModule, set up, whose test split is every recording under ``data``, with the phase ``recipe``
     (its features made through the cache) and windows at ``label_rate`` (default: the DataModule's)."""
@@ -91,7 +91,7 @@ def run(data: list[Path], recipe: str, net_kwargs: dict, cache: Path | None, bat
     With ``smoother`` (:func:`zoo.smoothing.make_smoother` arguments), ``E_smooth`` is the error of the
     detected windows' smoothed track."""
     start = time.perf_counter()
-    module = test_module(data, recipe, cache, batch_size)
+    module = recordings_module(data, recipe, cache, batch_size)
     feature_seconds = time.perf_counter() - start
     net = get_model("srp_phat", input_recipes={"audio_phase": recipe}, **net_kwargs)
     net.set_bounds(module.hparams.bev_bounds)

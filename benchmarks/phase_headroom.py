@@ -36,7 +36,7 @@ import torch
 import yaml
 from sklearn.ensemble import HistGradientBoostingClassifier
 
-from benchmarks.phase_bench import test_module
+from benchmarks.phase_bench import recordings_module
 from zoo.nets.srp_phat import SRPPhat
 from zoo.registry import get_model
 
@@ -81,7 +81,7 @@ def candidate_features(net: SRPPhat, correlation: torch.Tensor, points: torch.Te
 def collect(net: SRPPhat, data: list[Path], cache: Path | None, label_rate: float | None = None
             ) -> dict[str, np.ndarray]:
     """Every window's candidates, their responses and features, with its labels, time and sequence."""
-    module = test_module(data, net.inputs["audio_phase"], cache, label_rate=label_rate)
+    module = recordings_module(data, net.inputs["audio_phase"], cache, label_rate=label_rate)
     net.set_bounds(module.hparams.bev_bounds)
     keep: dict[str, list[np.ndarray]] = {}
     for batch in module.test_dataloader()[0]:
@@ -131,8 +131,7 @@ def oracle(arrays: dict[str, np.ndarray], radius: float) -> tuple[np.ndarray, np
 
 def train_scorer(arrays: dict[str, np.ndarray], labels: str, radius: float) -> HistGradientBoostingClassifier:
     """The classifier of 'candidate within ``radius`` of the label' on the labelled windows' candidates."""
-    valid = arrays[f"{labels}_valid" if labels == "pseudo" else "gt_valid"]
-    b, f, k, _ = arrays["points"].shape
+    valid = arrays[f"{labels}_valid"]
     near = np.linalg.norm(arrays["points"] - arrays[labels][:, None, None], axis=3) < radius
     features, target = arrays["features"][valid].reshape(-1, len(FEATURES)), near[valid].reshape(-1)
     if target.all() or not target.any():
