@@ -67,7 +67,7 @@ def candidate_features(net: SRPPhat, correlation: torch.Tensor, points: torch.Te
     frames = correlation.float().reshape(b * f, *correlation.shape[2:])
     across = (net.response(frames, flat, mics).reshape(b, f, f * k).transpose(1, 2) / threshold).float()
     own = scores.reshape(b, f * k) / threshold
-    best = torch.gather(points, 2, scores.argmax(dim=2)[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
+    best = net.best_candidates(points, scores)[0]  # B x F x 3
     distance = torch.cdist(points.reshape(b, f * k, 3), best)  # B x FK x F
     rank = scores.argsort(dim=2, descending=True).argsort(dim=2).reshape(b, f * k).float()
     mean = across.mean(dim=2)
@@ -114,9 +114,9 @@ def track(net: SRPPhat, arrays: dict[str, np.ndarray], frame_points: np.ndarray,
 
 
 def best_of(points: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per frame, the candidate (B x F x 3) of highest ``values`` (B x F x K) and that value (B x F)."""
-    top = values.argmax(axis=2)[..., None]
-    return np.take_along_axis(points, top[..., None], axis=2)[:, :, 0], np.take_along_axis(values, top, 2)[..., 0]
+    """:meth:`SRPPhat.best_candidates` on arrays: per frame, the candidate of highest ``values`` and that value."""
+    best, value = SRPPhat.best_candidates(torch.from_numpy(points), torch.from_numpy(values))
+    return best.numpy(), value.numpy()
 
 
 def oracle(arrays: dict[str, np.ndarray], radius: float) -> tuple[np.ndarray, np.ndarray]:

@@ -69,13 +69,13 @@ FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 30, 1e-4, 5.0
 FALLBACKS = ("mean", "centre")
 
 
-
 @contextmanager
 def _sparse_warnings_ignored() -> Iterator[None]:
     """Silence torch's beta-support warnings for sparse tensors."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
         yield
+
 
 @register_model("srp_phat")
 class SRPPhat(TrajectoryNet):
@@ -359,10 +359,15 @@ class SRPPhat(TrajectoryNet):
     def _search(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags):
         the best of its :meth:`fitted_candidates`."""
-        points, scores = self.fitted_candidates(correlation, mics)
-        top = scores.argmax(dim=-1, keepdim=True)  # B x F x 1
+        return self.best_candidates(*self.fitted_candidates(correlation, mics))
+
+    @staticmethod
+    def best_candidates(points: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per frame, the candidate (B x F x 3) of highest ``values`` (B x F x K) among ``points``
+        (B x F x K x 3), and that value (B x F)."""
+        top = values.argmax(dim=-1, keepdim=True)  # B x F x 1
         best = torch.gather(points, 2, top[..., None].expand(-1, -1, 1, 3))[:, :, 0]
-        return best, torch.gather(scores, 2, top)[..., 0]
+        return best, torch.gather(values, 2, top)[..., 0]
 
     def fitted_candidates(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Every frame's ``frame_candidates`` fitted points (B x F x K x 3) and their exact responses
@@ -541,7 +546,7 @@ class SRPPhat(TrajectoryNet):
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         phase = inputs["audio_phase"]
-        b, p, f, lags = phase.shape
+        b = phase.shape[0]
         mics_batch = inputs.get("mic_positions")
         positions = torch.empty(b, 3)
         scores = torch.empty(b)
