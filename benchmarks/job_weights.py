@@ -38,8 +38,8 @@ def weights_name(suite: Suite, job: JobSpec) -> str:
 
 def register_job_weights(suite: Suite, job: JobSpec, row: dict[str, Any]):
     """Register the best checkpoint of a finished model job; returns the entry (None when there is none)."""
-    from zoo.checkpoints import read_checkpoint
     from zoo.weights import Weights, register_weights
+    from zoo.weights.files import read_checkpoint
 
     checkpoint = row.get("checkpoint_path")
     if job.kind != "model" or row.get("status") != "ok" or not checkpoint or checkpoint == "last":

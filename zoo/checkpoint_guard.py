@@ -20,7 +20,7 @@ from typing import Any
 
 import torch
 
-from zoo.checkpoints import CheckpointContents, CheckpointError, WeightsMismatchError, load_state_checked
+from zoo.weights.files import CheckpointContents, CheckpointError, WeightsMismatchError, load_state_checked
 
 
 @dataclass
@@ -32,7 +32,7 @@ class PendingWeights:
 
 def _checkpoint_net(path: Path) -> tuple[str | None, dict[str, Any]]:
     """The net name and kwargs a project ``.ckpt`` records (memory-mapped read, weights only)."""
-    from zoo.checkpoints import parse_contents, read_file
+    from zoo.weights.files import parse_contents, read_file
 
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True, mmap=True)

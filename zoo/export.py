@@ -123,7 +123,7 @@ def export(net: nn.Module, out: str | Path, net_kwargs: dict[str, Any], provenan
     """Write ``<out>.pt`` and, for audio-only nets (or ``onnx=True``), ``<out>.onnx`` checked by onnxruntime.
 
     ``original_format`` (``aaute``) also writes ``<out>_aaute.pth``: a plain state dict in the original
-    code's layout (:func:`zoo.converters.to_original`).
+    code's layout (:func:`zoo.weights.converters.to_original`).
     """
     from zoo.weights import save_weights_file
 
@@ -136,7 +136,7 @@ def export(net: nn.Module, out: str | Path, net_kwargs: dict[str, Any], provenan
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} already exists; pass --overwrite to replace it")
     if original_path is not None:
-        from zoo.converters import to_original
+        from zoo.weights.converters import to_original
 
         state = to_original(net, original_format)
         with atomic_write(original_path) as tmp:

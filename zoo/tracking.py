@@ -402,7 +402,7 @@ class TrackingModel:
 
 def _data_settings(path: Path) -> dict[str, Any]:
     """The DataModule hyperparameters a Lightning checkpoint stored (empty for other files)."""
-    from zoo.checkpoints import read_file
+    from zoo.weights.files import read_file
 
     try:
         stored = read_file(path)

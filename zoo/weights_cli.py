@@ -9,7 +9,7 @@ from pathlib import Path
 
 log = logging.getLogger("aaute")
 
-#: the layouts of :mod:`zoo.converters` (named here so that building the parser does not import torch)
+#: the layouts of :mod:`zoo.weights.converters` (named here so that building the parser does not import torch)
 FORMATS = ("aaute", "avfdti", "avfdti-comparison", "avped")
 
 
@@ -43,8 +43,8 @@ def _cmd_weights_list(args: argparse.Namespace) -> int:
 
 
 def _cmd_weights_register(args: argparse.Namespace) -> int:
-    from zoo.checkpoints import read_checkpoint
     from zoo.weights import Weights, build_net, register_weights
+    from zoo.weights.files import read_checkpoint
 
     contents = read_checkpoint(args.file)
     model = args.name.split(".", 1)[0]
@@ -56,9 +56,9 @@ def _cmd_weights_register(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from zoo.checkpoints import read_file
-    from zoo.converters import convert_state
     from zoo.weights import Weights, file_sha256, register_weights, save_weights_file
+    from zoo.weights.converters import convert_state
+    from zoo.weights.files import read_file
 
     source = Path(args.file)
     conversion = convert_state(read_file(source), args.format, str(source), args.model)

@@ -311,7 +311,7 @@ def test_cli_errors_are_one_line(student_weights, capsys, monkeypatch):
 
 def test_checkpoint_gives_the_recipe_and_window_of_its_data(student_weights, tmp_path):
     """A Lightning checkpoint of aaute fit: net and weights from its task, recipe and window from its DataModule."""
-    from zoo.checkpoints import read_checkpoint
+    from zoo.weights.files import read_checkpoint
 
     state = read_checkpoint(student_weights).state_dict
     checkpoint = {"state_dict": {f"net.{key}": value for key, value in state.items()},

@@ -8,7 +8,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from zoo.checkpoints import CheckpointError, UnsafeCheckpointError, WeightsMismatchError, read_checkpoint
 from zoo.cli import main
 from zoo.registry import get_model
 from zoo.weights import (
@@ -22,6 +21,7 @@ from zoo.weights import (
     save_weights_file,
     weights_dir,
 )
+from zoo.weights.files import CheckpointError, UnsafeCheckpointError, WeightsMismatchError, read_checkpoint
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "model"
 SPLIT = "{train: [sim11-0000-avata], val: [sim11-0001-m300], test: [sim11-0002-mavic2]}"

@@ -1,5 +1,7 @@
 """Reading weights files safely, telling their kind apart, and loading state dicts with a readable diff.
 
+The bottom of :mod:`zoo.weights`: it knows files and state dicts, not the registry or the cache.
+
 Every file is read with ``torch.load(weights_only=True)``: tensors and plain containers only. A
 pickle that needs code to rebuild (a whole pickled model, a custom class) is refused with an error
 that names the file and the global it asked for. Three kinds of file are understood:
@@ -12,11 +14,14 @@ that names the file and the global it asked for. Three kinds of file are underst
 - bare state dicts (name -> tensor), whose net and keyword arguments the caller must give.
 
 A state dict that does not fit a net is never loaded in part: :func:`load_state_checked` lists the
-missing and unexpected keys and the shape differences (first few names and shapes) in one line.
+missing and unexpected keys and the shape differences (first :data:`SHOWN` names and shapes, each
+written by :func:`shape_text`) in one line. :func:`file_sha256` is the digest the registry and the
+cache check files against.
 """
 
 from __future__ import annotations
 
+import hashlib
 import pickle
 import re
 import zipfile
@@ -32,7 +37,7 @@ from datamodules.errors import AauteError
 
 WEIGHTS_FORMAT = "aaute-weights"  #: the ``format`` value of a self-describing weights file
 WEIGHTS_VERSION = 1
-SHOWN = 5  #: names listed per kind of difference
+SHOWN = 5  #: names listed per kind of difference (here and in the converters' errors)
 
 
 class CheckpointError(AauteError, ValueError):
@@ -47,8 +52,18 @@ class WeightsMismatchError(CheckpointError):
     """A state dict whose keys or shapes do not fit the net (the message lists the differences)."""
 
 
-def _shape(value: Any) -> str:
+def shape_text(value: Any) -> str:
+    """A tensor's shape as ``64x4x3x3`` (anything else: its type's name), for error messages."""
     return "x".join(map(str, value.shape)) if isinstance(value, torch.Tensor) else type(value).__name__
+
+
+def file_sha256(path: str | Path) -> str:
+    """The full hex sha256 digest of the file at ``path`` (read in 1 MiB blocks)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def read_file(path: str | Path) -> Any:
@@ -142,15 +157,15 @@ def state_differences(expected: Mapping[str, torch.Tensor], given: Mapping[str, 
     parts = []
     if missing:
         parts.append(f"{len(missing)} missing (" + ", ".join(
-            f"{key} [{_shape(expected[key])}]" for key in missing[:SHOWN]) + (", ..." if len(missing) > SHOWN else "")
-            + ")")
+            f"{key} [{shape_text(expected[key])}]" for key in missing[:SHOWN])
+            + (", ..." if len(missing) > SHOWN else "") + ")")
     if unexpected:
         parts.append(f"{len(unexpected)} unexpected (" + ", ".join(
-            f"{key} [{_shape(given[key])}]" for key in unexpected[:SHOWN])
+            f"{key} [{shape_text(given[key])}]" for key in unexpected[:SHOWN])
             + (", ..." if len(unexpected) > SHOWN else "") + ")")
     if reshaped:
         parts.append(f"{len(reshaped)} of another shape (" + ", ".join(
-            f"{key}: file {_shape(given[key])}, net {_shape(expected[key])}" for key in reshaped[:SHOWN])
+            f"{key}: file {shape_text(given[key])}, net {shape_text(expected[key])}" for key in reshaped[:SHOWN])
             + (", ..." if len(reshaped) > SHOWN else "") + ")")
     return "; ".join(parts)
 

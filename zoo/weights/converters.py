@@ -39,10 +39,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+from torch import nn
 
-from zoo.checkpoints import CheckpointError, WeightsMismatchError, state_differences
+from zoo.registry import get_model
+from zoo.weights.files import SHOWN, CheckpointError, WeightsMismatchError, shape_text, state_differences
 
-SHOWN = 5
 RESNET_CHILDREN = {"0": "conv1", "1": "bn1", "4": "layer1", "5": "layer2", "6": "layer3", "7": "layer4"}
 
 
@@ -76,10 +77,6 @@ def detect_rules(src: str, dst: str) -> list[Rule]:
     for original, ours in (("position_est", "position"), ("cls", "classes"), ("traj", "trajectory")):
         rules += [(rf"{src}{original}{i + 1}\.", f"{dst}{ours}.{2 * i}.") for i in range(3)]
     return rules
-
-
-def _shape(shape: torch.Size) -> str:
-    return "x".join(map(str, shape))
 
 
 def _out(state: dict[str, torch.Tensor], key: str, axis: int = 0) -> int:
@@ -334,8 +331,6 @@ def convert_state(state: Any, fmt: str, source: str = "state dict", model: str |
         WeightsMismatchError: a key the layout does not know, two copies of a parameter that disagree, or a
             shape that does not fit the zoo's net (the parameter, its original name and both shapes).
     """
-    from zoo.registry import get_model
-
     state = _unwrap(state, source)
     layout = identify(fmt, state, model, source)
     converted: dict[str, torch.Tensor] = {}
@@ -370,10 +365,11 @@ def convert_state(state: Any, fmt: str, source: str = "state dict", model: str |
             converted[key] = expected[key].clone()
     for key, value in converted.items():
         if key in expected and tuple(value.shape) != tuple(expected[key].shape):
-            stored = state[renamed[key]].shape if key in renamed else value.shape
-            shape = _shape(stored) + (f" ({_shape(value.shape)} once reshaped)" if stored != value.shape else "")
+            stored = state[renamed[key]] if key in renamed else value
+            shape = shape_text(stored) + (f" ({shape_text(value)} once reshaped)" if stored.shape != value.shape
+                                          else "")
             raise WeightsMismatchError(f"{source}: {renamed.get(key, key)} -> {key} has shape {shape}, the "
-                                       f"{layout.model} net {net_kwargs} needs {_shape(expected[key].shape)}")
+                                       f"{layout.model} net {net_kwargs} needs {shape_text(expected[key])}")
     differences = state_differences(expected, converted)
     if differences:
         raise WeightsMismatchError(f"{source}: conversion as {layout.name} is incomplete: {differences}")
@@ -388,8 +384,6 @@ def to_original(net: Any, fmt: str) -> dict[str, torch.Tensor]:
     Only ``aaute`` (the student as AAUTE's ``AudioNet``) is written: the inverse of its renames, plus
     the four declared-but-unused BatchNorms at their initial values so that a strict load succeeds.
     """
-    from torch import nn
-
     if fmt != "aaute" or getattr(net, "model_name", "") != "student":
         raise CheckpointError(f"only the student can be written in an original layout (--original-format aaute); "
                               f"got {getattr(net, 'model_name', type(net).__name__)} as {fmt}")
