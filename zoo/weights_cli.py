@@ -79,7 +79,7 @@ def _cmd_import(args: argparse.Namespace) -> int:
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
-    from zoo.export import export
+    from zoo.deploy.export import export
     from zoo.weights import build_net, resolve_weights
 
     contents, entry = resolve_weights(args.model, args.weights, None)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import pytest
 import torch
 
 from zoo.cli import main
-from zoo.export import ExportError, export, export_onnx
+from zoo.deploy.export import ExportError, export, export_onnx
 from zoo.registry import get_model
 from zoo.weights import load_pretrained, save_weights_file
 
@@ -66,3 +67,18 @@ def test_an_image_net_gets_the_checkpoint_and_no_onnx_by_default(tmp_path):
     done = export(net, tmp_path / "visualnet", {}, {"source": "random"})
     assert done.onnx is None and done.checkpoint.is_file() and not (tmp_path / "visualnet.onnx").exists()
     assert load_pretrained("visualnet", done.checkpoint).inputs == {"image": "resnet256"}
+
+
+def test_export_without_onnx_installed_is_one_line_exit_2_and_writes_nothing(tmp_path, monkeypatch, capsys):
+    net = get_model("student", kernels=4, feature_dim=16).eval()
+    source = save_weights_file(net, tmp_path / "trained.pt", {"kernels": 4, "feature_dim": 16})
+    for name in ("onnx", "onnxruntime"):  # None in sys.modules: ``import onnx`` raises ImportError, as if absent
+        monkeypatch.setitem(sys.modules, name, None)
+    out = tmp_path / "deploy"
+    out.mkdir()
+    assert main(["export", "--weights", str(source), "--out", str(out / "student")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("aaute: error: ONNX export needs onnx and onnxruntime")
+    assert "pip install -e '.[export]'" in err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert list(out.iterdir()) == []  # neither <out>.onnx nor <out>.pt

@@ -23,13 +23,16 @@ import torch
 from torch import nn
 
 from datamodules.atomic import atomic_write
+from zoo.weights.build import save_weights_file
+from zoo.weights.converters import to_original
+from zoo.weights.files import CheckpointError
 
 log = logging.getLogger(__name__)
 
 TOLERANCE = 1e-5
 
 
-class ExportError(ValueError):
+class ExportError(CheckpointError):
     """A net that could not be exported, or whose ONNX file disagrees with PyTorch (nothing is kept)."""
 
 
@@ -125,8 +128,6 @@ def export(net: nn.Module, out: str | Path, net_kwargs: dict[str, Any], provenan
     ``original_format`` (``aaute``) also writes ``<out>_aaute.pth``: a plain state dict in the original
     code's layout (:func:`zoo.weights.converters.to_original`).
     """
-    from zoo.weights import save_weights_file
-
     out = Path(out)
     stem = out.with_suffix("") if out.suffix in (".pt", ".onnx") else out
     checkpoint, onnx_path = stem.with_suffix(".pt"), stem.with_suffix(".onnx")
@@ -136,8 +137,6 @@ def export(net: nn.Module, out: str | Path, net_kwargs: dict[str, Any], provenan
         if path.exists() and not overwrite:
             raise FileExistsError(f"{path} already exists; pass --overwrite to replace it")
     if original_path is not None:
-        from zoo.weights.converters import to_original
-
         state = to_original(net, original_format)
         with atomic_write(original_path) as tmp:
             torch.save(state, tmp)
