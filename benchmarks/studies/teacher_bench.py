@@ -1,6 +1,6 @@
 """Benchmark of the LiDAR teacher: accuracy and coverage on simulated flights, speed, memory.
 
-Run ``python -m benchmarks.teacher_bench`` (``--quick`` for a short run). Prints three tables:
+Run ``python -m benchmarks.studies.teacher_bench`` (``--quick`` for a short run). Prints three tables:
 
 1. accuracy and coverage per drone and range band (distance of the drone to the nearest LiDAR at
    each ground-truth time) on simulated recordings of several flight regions, pooled over seeds;
