@@ -31,6 +31,7 @@ import pandas as pd
 
 from benchmarks.results import (
     BREAKDOWN,
+    CATEGORIES,
     DRONES,
     LIGHTS,
     METRICS,
@@ -60,7 +61,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-CATEGORY_ORDER = ("supervised", "self-supervised", "non-learned", "reference")
 #: Row order within a category: the paper's Table I (supervised visual, audio, audio-visual models, then the
 #: student); models not listed follow the listed ones of their category, by method name.
 PAPER_ORDER = ("visualnet", "darknet", "audionet", "voranet", "asdnet", "avped", "avfdti", "student", "srp_phat")
@@ -152,7 +152,7 @@ def _method_key(row: pd.Series) -> str:
 
 def _sort_key(row: pd.Series) -> tuple:
     category = row["category"]
-    rank = CATEGORY_ORDER.index(category) if category in CATEGORY_ORDER else 2.5  # unknown: before reference
+    rank = CATEGORIES.index(category) if category in CATEGORIES else 2.5  # unknown: before reference
     order = PAPER_ORDER.index(row["model"]) if row["model"] in PAPER_ORDER else len(PAPER_ORDER)
     return rank, row["kind"] == "constant", order, row["display"]
 
