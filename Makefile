@@ -30,7 +30,7 @@ lint: setup
 	$(BIN)/ruff check .
 
 bench: setup
-	$(BIN)/python -m benchmarks.recording_bench
+	$(BIN)/python -m benchmarks.studies.recording_bench
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) .pytest_cache

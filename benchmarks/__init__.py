@@ -1,1 +1,1 @@
-"""Measuring and reporting: profiler, benchmark runner, leaderboard and speed benchmarks."""
+"""Measuring and reporting: profiler, benchmark runner, leaderboard; one-off studies in ``benchmarks.studies``."""

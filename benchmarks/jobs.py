@@ -23,15 +23,11 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from benchmarks.results import DRONES, RANGES, range_name
+from benchmarks.results import DRONES, PREDICTION_COLUMNS, RANGES, range_name
 from benchmarks.suite import JobSpec
 from datamodules.atomic import atomic_write
 
 log = logging.getLogger(__name__)
-
-PREDICTION_COLUMNS = ["sequence_id", "recording_id", "drone", "light", "timestamp", "x", "y", "z",
-                      "gt_x", "gt_y", "gt_z", "gt_valid", "smooth_x", "smooth_y", "smooth_z"]
-
 
 def provenance(threads: int) -> dict[str, Any]:
     """Where and with what a row was made: commit, versions, machine."""

@@ -2,7 +2,7 @@
 
 :class:`SectionPlotter` decides what to draw for one leaderboard table from its method statistics
 (one row per method, as :func:`benchmarks.leaderboard.method_stats` builds them) and the per-window
-prediction files the rows point to (:data:`PREDICTION_COLUMNS`); the numbers of the tables never
+prediction files the rows point to (:data:`benchmarks.results.PREDICTION_COLUMNS`); the numbers of the tables never
 come from those files. A missing or unreadable file leaves its method out of a figure, or skips the
 figure, with a warning. Figures are built on :class:`matplotlib.figure.Figure` directly, which needs
 no GUI backend, and written as PNG atomically.
@@ -20,11 +20,10 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from benchmarks.results import PREDICTION_COLUMNS
 from datamodules.atomic import atomic_write
 from datamodules.errors import AauteError
 
-PREDICTION_COLUMNS = ("sequence_id", "recording_id", "drone", "light", "timestamp", "x", "y", "z",
-                      "gt_x", "gt_y", "gt_z", "gt_valid", "smooth_x", "smooth_y", "smooth_z")
 REFERENCE_STYLE = {"color": "0.45", "linestyle": "--"}  #: the constant-position predictor in every figure
 DPI = 100
 #: Fixed margins (fractions of the figure) that fit the labels used here; a layout engine (constrained or

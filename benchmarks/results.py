@@ -27,6 +27,7 @@ import pandas as pd
 
 from datamodules.atomic import atomic_write
 from datamodules.errors import AauteError
+from datamodules.recording import DRONE_TYPES
 
 log = logging.getLogger(__name__)
 
@@ -35,7 +36,7 @@ KINDS = ("model", "constant", "profile")
 CATEGORIES = ("supervised", "self-supervised", "non-learned", "reference")
 PROTOCOLS = ("by_sequence", "time_blocks", "random_windows")
 LIGHTS = ("ideal", "dark")
-DRONES = ("avata", "m300", "mavic2", "mavic3", "phantom4")
+DRONES = DRONE_TYPES
 RANGES = ((0, 10), (10, 20), (20, 30), (30, None))  #: metres from the rig origin; None: no upper bound
 
 
@@ -61,6 +62,9 @@ PROVENANCE = ["config_hash", "checkpoint_path", "predictions_path", "git_commit"
 COLUMNS = IDENTITY + METHOD + DATA + BUDGET + METRICS + BREAKDOWN + PROFILE + PROVENANCE
 #: columns added to schema 1 after its first files were written: empty when an older file lacks them
 LATER_COLUMNS = ("smoother",)
+#: columns of a model job's per-window predictions CSV (``predictions_path``; written by jobs, read by plots)
+PREDICTION_COLUMNS = ["sequence_id", "recording_id", "drone", "light", "timestamp", "x", "y", "z",
+                      "gt_x", "gt_y", "gt_z", "gt_valid", "smooth_x", "smooth_y", "smooth_z"]
 
 
 class ResultsError(AauteError, ValueError):

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.jobs import base_row, run_job
+from benchmarks.register import register_job_weights
 from benchmarks.results import append_rows, read_results
 from benchmarks.suite import JobSpec, Suite, check_job_args, expand_jobs
 
@@ -182,15 +183,13 @@ def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary
                 status = f"FAILED: {row['error']} (log: {suite.out / log_path})"
             append_rows(suite.results_path, [row])
             log.info("%s %s %s", _progress(summary, len(running), len(pending), start), job_id, status)
-            _register_weights(suite, job, row)
+            register_finished_job(suite, job, row)
         if running:
             time.sleep(poll_seconds)
 
 
-def _register_weights(suite: Suite, job: JobSpec, row: dict[str, Any]) -> None:
+def register_finished_job(suite: Suite, job: JobSpec, row: dict[str, Any]) -> None:
     """A finished model job's best checkpoint becomes named weights; a failure here never fails the suite."""
-    from benchmarks.job_weights import register_job_weights
-
     try:
         entry = register_job_weights(suite, job, row)
     except (ValueError, OSError) as error:

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmarks import leaderboard
+from benchmarks import leaderboard, tables
 from benchmarks.results import COLUMNS, append_rows
 
 GOLDEN = Path(__file__).parent / "golden" / "leaderboard.md"
@@ -168,10 +168,10 @@ def test_best_bold_second_underlined_and_constant_not_ranked(report):
     # the constant has the lowest Dx but does not compete: the best model's Dx is bold, the constant's plain
     assert grid["Constant (mean train GT)"]["Dx ideal"] == "0.10"
     assert grid["Ours (student)"]["Dx ideal"].startswith("**")
-    assert grid["Constant (mean train GT)"]["GMACs"] == leaderboard.MISSING
-    assert grid[srp]["GMACs"] == leaderboard.MISSING and grid[srp]["E dark"] == "3.00"
+    assert grid["Constant (mean train GT)"]["GMACs"] == tables.MISSING
+    assert grid[srp]["GMACs"] == tables.MISSING and grid[srp]["E dark"] == "3.00"
     assert grid["Ours (student)"]["smoothed E ideal"] == "1.10 ± 0.28"  # the only smoothed row: nothing to rank
-    assert grid["AudioNet"]["smoothed E ideal"] == leaderboard.MISSING
+    assert grid["AudioNet"]["smoothed E ideal"] == tables.MISSING
 
 
 def test_mean_and_std_over_seeds_are_right(report):
@@ -252,7 +252,7 @@ def test_latex_is_booktabs_and_escaped(report):
     assert "SRP\\_PHAT (grid 1 m, 100\\% of pairs)" in tex
     assert "\\textbf{1.25 $\\pm$ 0.35}" in tex and "\\underline{1.80}" in tex
     assert "\\multicolumn{4}{c}{ideal light}" in tex and "\\multicolumn{4}{c}{darkness}" in tex
-    assert leaderboard.latex_escape("50% a_b & #1 {x} $~^\\") == (
+    assert tables.latex_escape("50% a_b & #1 {x} $~^\\") == (
         "50\\% a\\_b \\& \\#1 \\{x\\} \\$\\textasciitilde{}\\textasciicircum{}\\textbackslash{}")
 
 

@@ -1,7 +1,7 @@
-"""The profiler: MACs counted per call on the executed graph, used parameters, the profile row, the CLI.
+"""The counts (benchmarks.flops): MACs per call on the executed graph, used parameters; the profile row, the CLI.
 
 Expected MACs and parameter counts are worked out by hand from the layer shapes (baselines.md
-sections 5, 6, 10 and the nets' code), never taken from the profiler's own output.
+sections 5, 6, 10 and the nets' code), never taken from the counter's own output.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from benchmarks import profiler
+from benchmarks import flops, profiler
 from benchmarks.results import PROFILE
 from zoo.registry import get_model, list_models
 
@@ -56,14 +56,14 @@ def test_macs_of_a_hand_built_model():
     transposed = (6 * 12 * 12) * (4 // 2) * (2 * 2)  # by output size, in_channels / groups
     fc = 6 * 12 * 12 * 5
     shared = 2 * (5 * 5)  # called twice: counted per call
-    assert profiler.count_macs(Tiny(), torch.rand(1, 2, 8, 8)) == conv + transposed + fc + shared
+    assert flops.count_macs(Tiny(), torch.rand(1, 2, 8, 8)) == conv + transposed + fc + shared
 
 
 def test_transposed_convolution_is_counted_by_output_size():
     up = nn.ConvTranspose2d(3, 5, 3, stride=2, padding=1, output_padding=1)  # 7 x 7 -> 14 x 14
     by_output = (5 * 14 * 14) * 3 * 9
     by_input = (3 * 7 * 7) * 5 * 9  # FlopCounterMode's own convention: 4 times fewer at stride 2
-    macs = profiler.count_macs(up, torch.rand(1, 3, 7, 7))
+    macs = flops.count_macs(up, torch.rand(1, 3, 7, 7))
     assert macs == by_output and macs == 4 * by_input
 
 
@@ -82,9 +82,9 @@ class Aliased(nn.Module):
 
 def test_a_module_under_two_names_is_counted_per_call_not_per_name():
     x = torch.rand(3, 6)
-    assert profiler.count_macs(Aliased(calls=1), x) == 3 * 6 * 6  # a module walk would count it twice
-    assert profiler.count_macs(Aliased(calls=2), x) == 2 * (3 * 6 * 6)
-    assert profiler.count_parameters(Aliased(calls=2), x) == (linear_params(6, 6), linear_params(6, 6))
+    assert flops.count_macs(Aliased(calls=1), x) == 3 * 6 * 6  # a module walk would count it twice
+    assert flops.count_macs(Aliased(calls=2), x) == 2 * (3 * 6 * 6)
+    assert flops.count_parameters(Aliased(calls=2), x) == (linear_params(6, 6), linear_params(6, 6))
 
 
 def test_lstm_gates_are_counted():
@@ -92,9 +92,9 @@ def test_lstm_gates_are_counted():
     steps, batch, hidden = 3, 2, 7
     gates = 4 * hidden
     expected = steps * batch * gates * (5 + hidden) + steps * batch * gates * (hidden + hidden)
-    assert profiler.count_macs(lstm, torch.rand(batch, steps, 5)) == expected
+    assert flops.count_macs(lstm, torch.rand(batch, steps, 5)) == expected
     bidirectional = nn.LSTM(5, 7, batch_first=True, bidirectional=True)
-    assert profiler.count_macs(bidirectional, torch.rand(batch, steps, 5)) == 2 * steps * batch * gates * (5 + hidden)
+    assert flops.count_macs(bidirectional, torch.rand(batch, steps, 5)) == 2 * steps * batch * gates * (5 + hidden)
 
 
 class Attention(nn.Module):
@@ -114,9 +114,9 @@ def test_attention_is_counted_alike_on_the_fused_and_the_unfused_path(keys):
     projections = (queries + keys + keys + queries) * dim * dim  # Q, K, V, output
     products = 2 * queries * keys * dim  # Q K^T and A V over all heads
     module = Attention(dim)
-    assert profiler.count_macs(module, (query, memory)) == projections + products
-    assert profiler.uncounted_ops(module, (query, memory)) == {}
-    total, used = profiler.count_parameters(module, (query, memory))
+    assert flops.count_macs(module, (query, memory)) == projections + products
+    assert flops.uncounted_ops(module, (query, memory)) == {}
+    total, used = flops.count_parameters(module, (query, memory))
     assert used == total  # the output projection is applied functionally, never called as a module
 
 
@@ -134,7 +134,7 @@ class DeadAndFunctional(nn.Module):
 
 
 def test_used_parameters_leave_out_dead_layers_only():
-    total, used = profiler.count_parameters(DeadAndFunctional(), torch.rand(1, 4))
+    total, used = flops.count_parameters(DeadAndFunctional(), torch.rand(1, 4))
     assert total == linear_params(4, 4) + linear_params(4, 16) + linear_params(4, 2)
     assert used == linear_params(4, 4) + 4 * 2  # shared layer once; the functional weight without its bias
 
@@ -180,8 +180,8 @@ def test_zoo_macs_and_parameters_by_hand(name, expected):
     macs, params = expected()
     net = get_model(name)
     inputs = net.example_inputs(1)
-    assert profiler.count_macs(net, inputs) == macs
-    assert profiler.count_parameters(net, inputs) == (params, params)
+    assert flops.count_macs(net, inputs) == macs
+    assert flops.count_parameters(net, inputs) == (params, params)
 
 
 #: baselines.md section 11 (params total / used, M) where the zoo builds the same modules
@@ -192,7 +192,7 @@ SECTION_11 = {"student": (2.230, 2.230), "audionet": (None, 1.366), "voranet": (
 @pytest.mark.parametrize("name", sorted(SECTION_11))
 def test_parameter_counts_reproduce_section_11(name):
     net = get_model(name)
-    total, used = profiler.count_parameters(net, net.example_inputs(1))
+    total, used = flops.count_parameters(net, net.example_inputs(1))
     reference_total, reference_used = SECTION_11[name]
     digits = 3 if reference_used < 10 else 2
     if reference_total is not None:  # audionet and avped leave out the published dead branches
@@ -210,7 +210,7 @@ SAME_BLOCKS_AS_AVFDTI = ("visualnet", "avped")
                                   else name for name in list_models()])
 def test_zoo_nets_run_no_op_the_counter_does_not_know(name):
     net = get_model(name)
-    assert profiler.uncounted_ops(net, net.example_inputs(1)) == {}
+    assert flops.uncounted_ops(net, net.example_inputs(1)) == {}
 
 
 # ------------------------------------------------------------------------------------------ profile row

@@ -8,7 +8,7 @@ the windows with ground truth), the detected share, E where detected, E by range
 (0-10, 10-20, 20-40 m) and by drone, the constant baseline (for each flight, the mean ground truth
 of the other flights), the feature cache per window and the net's windows/s on the torch threads set.
 
-Run: ``python -m benchmarks.phase_bench --data DIR [DIR ...] [--net-kwargs '{"frames": ...}']``.
+Run: ``python -m benchmarks.studies.phase_bench --data DIR [DIR ...] [--net-kwargs '{"frames": ...}']``.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.studies.common import recordings_module
 from datamodules.atomic import atomic_write
 from datamodules.features import phase_recipe
-from datamodules.mmaud import MMAUDDataModule, discover
 from zoo.registry import get_model
 from zoo.smoothing import make_smoother, smooth_detected
 
@@ -70,19 +70,6 @@ def smooth_flights(arrays: dict[str, np.ndarray], smoother: dict) -> np.ndarray:
         rows = np.flatnonzero(arrays["sequence"] == sequence)  # the smoothers take rows in any time order
         smoothed[rows] = smooth_detected(made, arrays["time"][rows], smoothed[rows], arrays["detected"][rows])
     return smoothed
-
-
-def recordings_module(data: list[Path], recipe: str, cache: Path | None, batch_size: int = 64,
-                label_rate: float | None = None) -> MMAUDDataModule:
-    """A DataModule, set up, whose test split is every recording under ``data``, with the phase ``recipe``
-    (its features made through the cache) and windows at ``label_rate`` (default: the DataModule's)."""
-    stems = [path.stem for path in discover([str(d) for d in data])]
-    rate = {} if label_rate is None else {"label_rate": label_rate}
-    module = MMAUDDataModule([str(d) for d in data], split={"train": [], "val": [], "test": stems},
-                             inputs={"audio_phase": recipe}, test_lights=["ideal"], batch_size=batch_size,
-                             cache_dir=None if cache is None else str(cache), **rate)
-    module.setup("test")
-    return module
 
 
 def run(data: list[Path], recipe: str, net_kwargs: dict, cache: Path | None, batch_size: int = 64,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.phase_bench import constant_errors, smooth_flights, summarise
+from benchmarks.studies.phase_bench import constant_errors, smooth_flights, summarise
 from zoo.smoothing import make_smoother, smooth_detected
 
 

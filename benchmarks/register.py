@@ -6,6 +6,7 @@ adds ``_<protocol>`` / ``_s<seed>`` (``student.sim_quick_random_windows``). The 
 checkpoint where the job wrote it (no copy) with its sha256, and records the job's test metrics,
 data, protocol and provenance, so ``load_pretrained("student", weights="sim_quick")`` and
 ``aaute predict --weights student.sim_quick`` use it and ``aaute weights list`` shows it.
+The runner calls :func:`register_job_weights` as each job ends.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Accuracy, calibration and speed of the trajectory smoothers: real MMAUD V1 tracks and long simulated ones.
 
-``python -m benchmarks.smoothing_bench --accuracy`` scores every smoother on the five MMAUD V1 TAME tracks
+``python -m benchmarks.studies.smoothing_bench --accuracy`` scores every smoother on the five MMAUD V1 TAME tracks
 (``../shared/data/mmaud_v1_tame``): mean Euclidean error E per drone and pooled, for the raw predictions,
 the ``paper`` and ``tuned`` GPs and the ``robust`` Student-t smoother offline, causal (lag 0) and at fixed
 lags, with the 2-sigma coverage of the ground truth. The robust smoother's std calibration factor is
@@ -10,7 +10,7 @@ preset. ``--speed-robust`` times the robust smoother offline on a 1-hour track a
 ``--choose-online`` scores the online smoother's (window, iterations) settings on every lag and picks
 one leave-one-drone-out; ``--window`` / ``--iterations`` set them for ``--accuracy`` and ``--speed-robust``.
 
-``python -m benchmarks.smoothing_bench`` (no flag) measures the GP backends' speed and memory. Every case
+``python -m benchmarks.studies.smoothing_bench`` (no flag) measures the GP backends' speed and memory. Every case
 (backend x track length) runs in a fresh subprocess so its peak resident memory (``ru_maxrss``) is its
 own; the time is one call of ``GPSmoother.smooth`` (mean and std of x, y, z at every observation time)
 after a warm-up, so imports and first-call set-up are excluded. The track is a simulated drone flight at
@@ -330,7 +330,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--window", type=float, default=None, help="online smoother's window, s (default: its own)")
     parser.add_argument("--iterations", type=int, default=None,
                         help="online smoother's variational iterations per update (default: its own)")
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data"
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2].parent / "shared" / "data"
                         / "mmaud_v1_tame", help="folder of the MMAUD V1 TAME CSVs")
     parser.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000, 36000])
     parser.add_argument("--threads", type=int, default=2, help="torch intra-op threads (2 cores here)")
@@ -373,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
             for name, preset, backend, largest in CASES:
                 if name in args.skip or (largest is not None and n > min(largest, args.exact_max)):
                     continue
-                command = [sys.executable, "-m", "benchmarks.smoothing_bench", "--case", str(track), preset,
+                command = [sys.executable, "-m", "benchmarks.studies.smoothing_bench", "--case", str(track), preset,
                            backend, str(args.threads)]
                 done = subprocess.run(command, capture_output=True, text=True, check=False)
                 if done.returncode != 0:

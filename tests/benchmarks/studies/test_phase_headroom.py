@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.phase_headroom import FEATURES, candidate_features, headroom, main, oracle, track, train_scorer
+from benchmarks.studies.phase_headroom import FEATURES, candidate_features, headroom, main, oracle, track, train_scorer
 from datamodules.simulate.microphones import distributed4
 from zoo.registry import get_model
 

@@ -1,6 +1,6 @@
 """Speed of ``aaute track`` on a simulated recording: end to end, and per stage.
 
-``python -m benchmarks.tracking_bench [--seconds 60] [--weights FILE] [--threads 1] [--batch 1 8]`` simulates
+``python -m benchmarks.studies.tracking_bench [--seconds 60] [--weights FILE] [--threads 1] [--batch 1 8]`` simulates
 one recording (kept in ``--data``, reused when it exists) and tracks it as fast as possible with the student
 (fixed random weights, seed 0, unless ``--weights`` names trained ones: speed does not depend on the values),
 once per net batch size. It prints the tracker's reports (updates, median / p95 latency from a block's arrival

@@ -1,6 +1,6 @@
 """Speed and memory of the DataModule: feature extraction, cache build, cached epochs.
 
-Run ``python -m benchmarks.datamodule_bench --data DIR`` on simulated (or real) recordings. It
+Run ``python -m benchmarks.studies.datamodule_bench --data DIR`` on simulated (or real) recordings. It
 prints: the time to turn one 2 s window into each recipe's features on one thread (target for the
 student recipe: under 2 ms, i.e. 1000x real time), the cache build rate, the samples per second a
 cached epoch delivers with 0 and 2 DataLoader workers (target: 5,000 on 2 cores) and the memory

@@ -21,7 +21,7 @@ Every variant goes through ``srp_phat``'s window median, confirmation, hold and 
 settings of ``configs/model/srp_phat.yaml`` (``--config``, ``--net-kwargs``). The test recordings'
 ground truth is used only to score.
 
-Run: ``python -m benchmarks.phase_headroom --train DIR [DIR ...] --test DIR [DIR ...]``.
+Run: ``python -m benchmarks.studies.phase_headroom --train DIR [DIR ...] --test DIR [DIR ...]``.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import torch
 import yaml
 from sklearn.ensemble import HistGradientBoostingClassifier
 
-from benchmarks.phase_bench import recordings_module
+from benchmarks.studies.common import recordings_module
 from zoo.nets.srp_phat import SRPPhat
 from zoo.registry import get_model
 
@@ -44,7 +44,7 @@ from zoo.registry import get_model
 FEATURES = ("own", "mean", "median", "upper_quartile", "max", "share_detected", "near_2m", "near_5m", "rank",
             "window_best_own", "window_best_mean")
 #: the model config whose ``net_kwargs`` build the net (``--config``)
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "model" / "srp_phat.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "srp_phat.yaml"
 
 
 def config_net_kwargs(config: Path) -> dict:

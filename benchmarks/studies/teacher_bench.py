@@ -1,6 +1,6 @@
 """Benchmark of the LiDAR teacher: accuracy and coverage on simulated flights, speed, memory.
 
-Run ``python -m benchmarks.teacher_bench`` (``--quick`` for a short run). Prints three tables:
+Run ``python -m benchmarks.studies.teacher_bench`` (``--quick`` for a short run). Prints three tables:
 
 1. accuracy and coverage per drone and range band (distance of the drone to the nearest LiDAR at
    each ground-truth time) on simulated recordings of several flight regions, pooled over seeds;
@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from datamodules.recording import ArrayPointClouds, PointCloud, PointCloudStream, Recording
+from datamodules.recording import DRONE_TYPES, ArrayPointClouds, PointCloud, PointCloudStream, Recording
 from datamodules.simulate import lidar as lidar_sim
 from datamodules.simulate import scene as scene_sim
 from datamodules.simulate.acoustics import AudioConfig
@@ -46,7 +46,6 @@ from datamodules.teacher.evaluate import (
 
 log = logging.getLogger(__name__)
 
-DRONES = ("avata", "m300", "mavic2", "mavic3", "phantom4")
 #: flight regions (rig frame, metres): min corner, max corner
 REGIONS = {
     "mmaud": ((-2.0, -5.0, 0.5), (8.0, 25.0, 25.0)),  # the MMAUD flight region (simulator default)
@@ -75,7 +74,7 @@ def accuracy_table(seconds: float, seeds: int, config: TeacherConfig) -> None:
     scores: dict[tuple[str, str], list] = {}
     out_of_view = []
     index = 0
-    for drone in DRONES:
+    for drone in DRONE_TYPES:
         for region in REGIONS.values():
             for seed in range(seeds):
                 index += 1
@@ -104,7 +103,7 @@ def accuracy_table(seconds: float, seeds: int, config: TeacherConfig) -> None:
           f"({len(REGIONS)} regions x {seeds} seed(s) x {seconds:.0f} s per drone)")
     print(header)
     print("-" * len(header))
-    for drone in (*DRONES, "all"):
+    for drone in (*DRONE_TYPES, "all"):
         for band in [f"{lo:.0f}-{hi:.0f} m" for lo, hi in BANDS] + ["<=40 m"]:
             if (drone, band) not in scores:
                 continue

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.job_weights import weights_name
 from benchmarks.jobs import base_row
-from benchmarks.runner import _register_weights
+from benchmarks.register import weights_name
+from benchmarks.runner import register_finished_job
 from benchmarks.suite import expand_jobs, load_suite
 from zoo.cli import main
 from zoo.task import TrajectoryTask
@@ -42,8 +42,8 @@ def test_finished_jobs_register_their_best_checkpoints(tmp_path, monkeypatch, ca
     assert weights_name(suite, leaky) == "student.sim_quick_random_windows"
 
     row, task = _finished(suite, by_sequence)
-    _register_weights(suite, by_sequence, row)
-    _register_weights(suite, leaky, {**_finished(suite, leaky, seed=1)[0], "status": "failed"})  # not registered
+    register_finished_job(suite, by_sequence, row)
+    register_finished_job(suite, leaky, {**_finished(suite, leaky, seed=1)[0], "status": "failed"})  # not registered
     assert list_weights() == ["student.sim_quick"]
     entry = get_weights("student.sim_quick")
     assert entry.metrics == {"E_ideal": 4.25, "E_dark": 4.5, "Dx_ideal": 1.0} and entry.protocol == "by_sequence"
@@ -62,5 +62,5 @@ def test_finished_jobs_register_their_best_checkpoints(tmp_path, monkeypatch, ca
     audionet = jobs["audionet-by_sequence-s0"]
     wrong_row, _ = _finished(suite, audionet)  # a student checkpoint under an AudioNet job
     with caplog.at_level(logging.WARNING):
-        _register_weights(suite, audionet, wrong_row)
+        register_finished_job(suite, audionet, wrong_row)
     assert "holds a 'student' net, not 'audionet'" in caplog.text and list_weights("audionet") == []

@@ -5,9 +5,9 @@ logarithmic frequency bands (absolute, and relative to the array mean, so inter-
 differences are explicit), fits scikit-learn's gradient boosting to ground-truth positions on the
 training sequences and reports E (mean Euclidean error, m) on the held-out test sequences, next to
 the constant-position predictor. The split is the DataModule's, so the numbers sit beside
-``benchmarks.student_check``. A student that cannot beat this probe is limited by its recipe or
+``benchmarks.studies.student_check``. A student that cannot beat this probe is limited by its recipe or
 its training; a probe that cannot beat the constant means the recordings carry little position
-information in those bands. Run: ``python -m benchmarks.audio_probe --data DIR [DIR ...]``.
+information in those bands. Run: ``python -m benchmarks.studies.audio_probe --data DIR [DIR ...]``.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import numpy as np
 from sklearn.ensemble import HistGradientBoostingRegressor
 from threadpoolctl import threadpool_limits
 
-from benchmarks.student_check import held_out_split
+from benchmarks.studies.common import held_out_split
 from datamodules.formats import open_recording
 from datamodules.mmaud import MMAUDDataModule, SequenceSamples
 
@@ -73,7 +73,7 @@ def fit_and_score(train: tuple[np.ndarray, np.ndarray], test: tuple[np.ndarray, 
 def run(data: list[Path], seed: int = 0, window_seconds: float = 0.5, stride: int = 2,
         max_hz: float = 1200.0, split: dict | None = None) -> dict[str, float]:
     """Probe E below ``max_hz`` and over all bands, and the constant predictor's E, on the test split
-    (``split`` as in :func:`benchmarks.student_check.run`)."""
+    (``split`` as in :func:`benchmarks.studies.student_check.run`)."""
     module = MMAUDDataModule([str(d) for d in data], split=split or held_out_split(seed),
                              inputs={}, test_lights=["ideal"])
     module.setup("fit")

@@ -1,6 +1,6 @@
 """Speed and size of the recording pipeline: simulate, write, and read windows back.
 
-Run ``python -m benchmarks.recording_bench`` (``make bench``). It measures, on one core
+Run ``python -m benchmarks.studies.recording_bench`` (``make bench``). It measures, on one core
 (single-threaded numerical libraries):
 
 1. the time to simulate one minute of all sensors (target: under one minute), per stage;

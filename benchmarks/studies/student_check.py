@@ -5,7 +5,7 @@ alpha = 1: ``aaute label``), keeps the checkpoint with the lowest ``val_loss`` (
 objective on the validation sequences, so alpha = 1 never looks at ground truth), tests it on
 held-out sequences against ground truth, and prints E (mean Euclidean error, m) next to the
 constant-position predictor (the mean training target) with a per-axis breakdown.
-Run: ``python -m benchmarks.student_check --data DIR [DIR ...]``.
+Run: ``python -m benchmarks.studies.student_check --data DIR [DIR ...]``.
 """
 
 from __future__ import annotations
@@ -20,13 +20,9 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import ModelCheckpoint
 
+from benchmarks.studies.common import held_out_split
 from datamodules.mmaud import MMAUDDataModule
 from zoo.task import TrajectoryTask
-
-
-def held_out_split(seed: int) -> dict[str, float]:
-    """The learning checks' split: seeded by sequence, 15 % validation and 20 % test sequences."""
-    return {"seed": seed, "val": 0.15, "test": 0.2}
 
 
 def _targets(module: MMAUDDataModule, split: str, kind: str) -> tuple[np.ndarray, np.ndarray]:
@@ -47,7 +43,7 @@ def run(data: list[Path], alpha: float, epochs: int, seed: int, cache: Path | No
         recipe: str = "aaute", batch_size: int = 32, split: dict | None = None) -> dict[str, float]:
     """Train, select by ``val_loss``, test; metrics plus ``constant_E``, ``best_epoch``, timings.
 
-    ``split``: the DataModule's split (default: :func:`held_out_split`).
+    ``split``: the DataModule's split (default: :func:`benchmarks.studies.common.held_out_split`).
     """
     L.seed_everything(seed, workers=True)
     module = MMAUDDataModule([str(d) for d in data], split=split or held_out_split(seed),

@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmarks.smoothing_bench import DRONES_V1, accuracy, choose_online
+from benchmarks.studies.smoothing_bench import DRONES_V1, accuracy, choose_online
 
 
 @pytest.fixture(scope="module")

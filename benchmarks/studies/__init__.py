@@ -1,0 +1,19 @@
+"""One-off studies: each answers one question with a printed table; they are not part of the benchmark product.
+
+Each runs as ``python -m benchmarks.studies.<study> [options]`` (``--help`` lists the options). No study imports
+another (what two of them share is in :mod:`benchmarks.studies.common`), and the product (suite, runner, jobs,
+results, leaderboard, plots, profiler, cli) imports no study.
+
+One line per study: its command (after ``python -m benchmarks.studies.``), the question it answers, and the README
+section that quotes its numbers (or only its command):
+
+- ``phase_bench --data DIR``: srp_phat's error, detections and speed on flights? "Train and test a model", 1st table
+- ``phase_headroom --train DIR --test DIR``: what could re-scoring srp_phat's candidates add? same, headroom table
+- ``audio_probe --data DIR``: how much position do the band levels carry? "Train and test a model", command only
+- ``student_check --data DIR``: does the student learn (alpha 1, alpha 0, constant)? same section, command only
+- ``smoothing_bench [--accuracy]``: the smoothers' error, coverage, speed? "Train and test a model", commands only
+- ``teacher_bench [--quick]``: the LiDAR teacher's error, coverage, speed, memory? "Pseudo-labels from LiDAR", command
+- ``tracking_bench --seconds 60``: how fast is ``aaute track``, end to end and per stage? "Real-time tracking"
+- ``datamodule_bench --data DIR``: the DataModule's feature, cache and epoch speed and memory? not in the README
+- ``recording_bench``: the recording pipeline's speed and size? ``make bench``; "Tests, lint, benchmarks", command only
+"""
