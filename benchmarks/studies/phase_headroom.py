@@ -37,7 +37,8 @@ import yaml
 from sklearn.ensemble import HistGradientBoostingClassifier
 
 from benchmarks.studies.common import recordings_module
-from zoo.nets.srp_phat import SRPPhat
+from zoo.nets.phase.search import best_candidates
+from zoo.nets.phase.srp_phat import SRPPhat
 from zoo.registry import get_model
 
 #: candidate features, in the order :func:`candidate_features` stacks them
@@ -65,9 +66,9 @@ def candidate_features(net: SRPPhat, correlation: torch.Tensor, points: torch.Te
     threshold = net.threshold(mics)
     flat = points.reshape(b, 1, f * k, 3).expand(b, f, f * k, 3).reshape(b * f, f * k, 3)
     frames = correlation.float().reshape(b * f, *correlation.shape[2:])
-    across = (net.response(frames, flat, mics).reshape(b, f, f * k).transpose(1, 2) / threshold).float()
+    across = (net.steering.response(frames, flat, mics).reshape(b, f, f * k).transpose(1, 2) / threshold).float()
     own = scores.reshape(b, f * k) / threshold
-    best = net.best_candidates(points, scores)[0]  # B x F x 3
+    best = best_candidates(points, scores)[0]  # B x F x 3
     distance = torch.cdist(points.reshape(b, f * k, 3), best)  # B x FK x F
     rank = scores.argsort(dim=2, descending=True).argsort(dim=2).reshape(b, f * k).float()
     mean = across.mean(dim=2)
@@ -89,7 +90,7 @@ def collect(net: SRPPhat, data: list[Path], cache: Path | None, label_rate: floa
         with torch.no_grad():
             for mics, rows in net.geometry_groups(phase, batch["mic_positions"]):
                 correlation = phase[rows].permute(0, 2, 1, 3).float()
-                points, scores = net.fitted_candidates(correlation, mics)
+                points, scores = net.search.fitted_candidates(correlation, mics)
                 found = {"points": points, "scores": scores / net.threshold(mics),
                          "features": candidate_features(net, correlation, points, scores, mics)}
                 found.update({name: batch[name][rows] for name in ("gt", "gt_valid", "pseudo", "pseudo_valid",
@@ -114,8 +115,9 @@ def track(net: SRPPhat, arrays: dict[str, np.ndarray], frame_points: np.ndarray,
 
 
 def best_of(points: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:meth:`SRPPhat.best_candidates` on arrays: per frame, the candidate of highest ``values`` and that value."""
-    best, value = SRPPhat.best_candidates(torch.from_numpy(points), torch.from_numpy(values))
+    """:func:`~zoo.nets.phase.search.best_candidates` on arrays: per frame, the candidate of highest ``values``
+    and that value."""
+    best, value = best_candidates(torch.from_numpy(points), torch.from_numpy(values))
     return best.numpy(), value.numpy()
 
 

@@ -11,6 +11,7 @@ import torch
 from datamodules.features import PhaseWindows, mic_pairs, phase_features, phase_recipe
 from datamodules.recording import ArrayAudio, RecordingError
 from datamodules.simulate.microphones import distributed4
+from zoo.nets.phase.steering import gather, pooled
 from zoo.registry import get_model
 
 RATE = 48000.0
@@ -148,7 +149,7 @@ def test_srp_phat_search_groups_give_each_frame_its_own_group_candidates():
     half = RECIPE.frames // 2
     window = torch.cat([features[0][:, :half], features[1][:, half:]], dim=1)  # pairs x frames x lags
     with torch.no_grad():
-        points, _ = net._search(window.permute(1, 0, 2)[None].float(), torch.as_tensor(mics))
+        points, _ = net.search.peaks(window.permute(1, 0, 2)[None].float(), torch.as_tensor(mics))
     assert np.linalg.norm(points[0, :half].numpy() - first, axis=1).max() < 0.5
     assert np.linalg.norm(points[0, half:].numpy() - second, axis=1).max() < 0.5
 
@@ -206,7 +207,7 @@ def test_srp_phat_skips_the_inside_of_the_array_and_can_fall_back_to_the_region_
     np.testing.assert_allclose(position[1], position[0])  # held
     np.testing.assert_allclose(position[2], net.region.mean(dim=1).numpy(), atol=1e-5)  # then the centre
     near = torch.tensor([[[0.0, 0.0, 1.0], [8.0, 20.0, 10.0]]])
-    assert net._near(near, torch.as_tensor(mics)).flatten().tolist() == [True, False]
+    assert net.steering.near(near, torch.as_tensor(mics)).flatten().tolist() == [True, False]
     with pytest.raises(ValueError, match="fallback"):
         get_model("srp_phat", fallback="last")
 
@@ -246,11 +247,11 @@ def test_grid_response_equals_the_gathered_terms_and_peaks_at_the_source(net):
     student = get_model("phase_student", input_recipes={"audio_phase": "gcc_phat"})
     points = student.grid()[0]
     geometry = torch.as_tensor(mics)
-    response = net.grid_response(correlation, points, geometry, 1.0)
-    flat = net._pooled(correlation)
-    columns = net._columns(points, geometry, 1.0)
-    np.testing.assert_allclose(response[0, 0].numpy(), net._gather(flat, columns, net._terms(4)[3])[0].numpy(),
-                               atol=1e-5)
+    response = net.steering.grid_response(correlation, points, geometry, 1.0)
+    flat = pooled(correlation)
+    columns = net.steering.columns(points, geometry, 1.0)
+    weights = net.steering.terms(4).weights
+    np.testing.assert_allclose(response[0, 0].numpy(), gather(flat, columns, weights)[0].numpy(), atol=1e-5)
     np.testing.assert_allclose(response[0, 1].numpy(), flat[0, columns[:, :6]].mean(dim=-1).numpy(), atol=1e-5)
     phase = phase_features(audio, RATE, RECIPE)[None]
     centre = mics.mean(axis=0)

@@ -6,8 +6,7 @@ from zoo.nets import (
     avfdti,  # noqa: F401
     avped,  # noqa: F401
     darknet,  # noqa: F401
-    phase_student,  # noqa: F401
-    srp_phat,  # noqa: F401
+    phase,  # noqa: F401
     student,  # noqa: F401
     visualnet,  # noqa: F401
     voranet,  # noqa: F401

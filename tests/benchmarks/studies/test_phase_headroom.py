@@ -42,7 +42,7 @@ def test_candidate_features_count_support_rank_and_responses_in_threshold_units(
     torch.testing.assert_close(column["own"], (scores.reshape(-1) / threshold).float())
     assert bool((column["near_2m"][0::2] == 1).all())  # the best point of every frame
     assert column["rank"].tolist() == [0.0, 1.0] * 5
-    response = net.response(correlation[0].float(), points[0, :1, :1].reshape(1, 1, 3).expand(5, 1, 3), mics)
+    response = net.steering.response(correlation[0].float(), points[0, :1, :1].reshape(1, 1, 3).expand(5, 1, 3), mics)
     torch.testing.assert_close(column["mean"][0], (response.mean() / threshold).float())
 
 

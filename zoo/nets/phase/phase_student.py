@@ -3,7 +3,7 @@
 Why this shape. The position information is in the pair delays, and which point in space explains a
 set of delays is geometry, not something to learn: the steered response power (SRP) of a point is
 the pairs' GCC-PHAT read at that point's delays (and, over the reflecting roof, at the delays of the
-ground-image paths), exactly as :mod:`zoo.nets.srp_phat` computes it. So the first layer is that
+ground-image paths), exactly as :mod:`zoo.nets.phase.srp_phat` computes it. So the first layer is that
 fixed map: on a 3D grid of cubes over the flight region (1 m by default), every frame group's
 correlations are read at each cube's delays (max-pooled over the delays the cube spans), for the
 multipath and the direct-only terms; the groups' mean and maximum give four channels. What SRP-PHAT
@@ -26,18 +26,26 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from datamodules.features import GccPhat, split_frames
+from datamodules.features import phase_recipe
 from zoo.nets.base import TrajectoryNet
-from zoo.nets.srp_phat import SPEED_OF_SOUND, SRPPhat
+from zoo.nets.phase.null import white_noise_correlations
+from zoo.nets.phase.steering import (
+    SPEED_OF_SOUND,
+    Steering,
+    cube_grid,
+    default_mics,
+    geometry_groups,
+    search_region,
+    with_bounds,
+)
 from zoo.registry import register_model
 
-#: windows of white noise that set each cube's null mean, and the rate they are made at
-NULL_WINDOWS, NULL_SAMPLE_RATE = 64, 48000.0
+#: windows of white noise that set each cube's null mean
+NULL_WINDOWS = 64
 
 
 @register_model("phase_student")
@@ -68,7 +76,7 @@ class PhaseStudent(TrajectoryNet):
         """Args:
             mic_positions: the geometry used when a batch carries none (a preset name or channels x 3, m).
             speed_of_sound, ground_height, reflection_weight, min_range: the steered response's physics,
-                as in :class:`zoo.nets.srp_phat.SRPPhat`.
+                as in :class:`zoo.nets.phase.srp_phat.SRPPhat`.
             region_min, region_max: the grid's region (m, rig frame); x and y follow the data's
                 ``bev_bounds`` when the task sets them.
             step: the grid's cube side (m).
@@ -79,9 +87,10 @@ class PhaseStudent(TrajectoryNet):
             target_sigma: that Gaussian's standard deviation (m).
         """
         super().__init__(in_channels, input_recipes=input_recipes)
-        self.steering = SRPPhat(in_channels, mic_positions, speed_of_sound, region_min, region_max,
-                                ground_height=ground_height, reflection_weight=reflection_weight,
-                                min_range=min_range, input_recipes=self.inputs)
+        self.recipe = phase_recipe(self.inputs["audio_phase"])
+        self.default_mics = default_mics(mic_positions, in_channels, self.model_name)
+        self.region = search_region(region_min, region_max, self.model_name)
+        self.steering = Steering(self.recipe, speed_of_sound, ground_height, reflection_weight, min_range)
         if step <= 0 or frame_groups < 1:
             raise ValueError(f"phase_student: step must be > 0 and frame_groups >= 1, got {step}, {frame_groups}")
         self.step, self.frame_groups = float(step), int(frame_groups)
@@ -97,15 +106,13 @@ class PhaseStudent(TrajectoryNet):
 
     def set_bounds(self, bounds: list[list[float]] | torch.Tensor) -> None:
         """Cover the data's bird's-eye area [[x_min, x_max], [y_min, y_max]] (m) with the grid."""
-        self.steering.set_bounds(bounds)
+        self.region = with_bounds(self.region, bounds)
         self._grid = None
 
     def grid(self) -> tuple[torch.Tensor, tuple[int, int, int]]:
         """The cube centres (G x 3, x slowest, z fastest) and the grid's shape, built once per region."""
         if self._grid is None:
-            axes = [torch.arange(float(lo) + self.step / 2, float(hi), self.step, dtype=torch.float64)
-                    for lo, hi in self.steering.region]
-            self._grid = (torch.cartesian_prod(*axes).float(), tuple(len(axis) for axis in axes))
+            self._grid = cube_grid(self.region, self.step)
         return self._grid
 
     def response(self, phase: torch.Tensor, mics_batch: torch.Tensor | None, points: torch.Tensor) -> torch.Tensor:
@@ -116,7 +123,7 @@ class PhaseStudent(TrajectoryNet):
         favour the array's surroundings. The standardisation makes the map's shape, not the source's
         level, what the heat map reads (the level varies by tens of dB between drones and ranges)."""
         out = torch.empty(phase.shape[0], 4, points.shape[0])
-        for mics, rows in self.steering.geometry_groups(phase, mics_batch, self.model_name):
+        for mics, rows in geometry_groups(phase, mics_batch, self.default_mics, self.model_name):
             excess = self._raw_response(phase[rows].detach().cpu(), mics, points)
             excess = excess - self.null_mean(mics, points, phase.shape[2])
             centred = excess - excess.mean(dim=-1, keepdim=True)
@@ -137,20 +144,16 @@ class PhaseStudent(TrajectoryNet):
         (``NULL_WINDOWS`` windows, seeded), computed once per geometry and grid."""
         key = (mics.numpy().tobytes(), points.numpy().tobytes(), frames)
         if key not in self._null:
-            recipe = self.steering.recipe
-            gcc = GccPhat(recipe, NULL_SAMPLE_RATE, mics.shape[0])
-            noise = np.random.default_rng(0).standard_normal((mics.shape[0], NULL_WINDOWS * frames * gcc.frame))
-            framed = split_frames(noise.astype(np.float32), gcc.frame, NULL_WINDOWS * frames)
+            correlation = white_noise_correlations(self.recipe, mics.shape[0], NULL_WINDOWS, frames)
             with torch.no_grad():
-                correlation = gcc.correlate(gcc.cross_spectra(framed))  # P x (windows * frames) x L
-                phase = correlation.reshape(correlation.shape[0], NULL_WINDOWS, frames, -1).transpose(0, 1)
+                phase = correlation.transpose(0, 1)  # windows x pairs x frames x lags
                 self._null[key] = self._raw_response(phase, mics, points).mean(dim=0)
         return self._null[key]
 
     def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
         """Compute the null mean of the inputs' geometries (otherwise the first call does)."""
         phase = inputs["audio_phase"]
-        for geometry, _ in self.steering.geometry_groups(phase, inputs.get("mic_positions"), self.model_name):
+        for geometry, _ in geometry_groups(phase, inputs.get("mic_positions"), self.default_mics, self.model_name):
             self.null_mean(geometry, self.grid()[0], phase.shape[2])
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -1,0 +1,194 @@
+"""SRP-PHAT's coarse-to-fine search for the points of highest steered response.
+
+:class:`CandidateSearch` runs the stages the :mod:`zoo.nets.phase.srp_phat` docstring describes, on
+windows of correlations: a coarse grid of cells (split near the array) scored on max-pooled
+correlations, levels of 27-cube refinement, then per frame a Gauss-Newton fit of each candidate to the
+frame's pair delays and a hill climb on its exact response. It owns the search region (clamping every
+step to it) and caches each geometry's coarse grid.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from datamodules.features import pair_indices
+from zoo.nets.phase.steering import Steering, cube_grid, gather, pooled
+
+#: coarse cells are split until they span at most this many lags (half-range) for every pair
+MAX_COARSE_WIDTH = 32.0
+#: levels refined on a window's mean correlation before its rays are scanned over range
+WINDOW_LEVELS = 2
+#: the delay fit: lags searched around a candidate's delays, Gauss-Newton steps, damping, largest step (m)
+FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 30, 1e-4, 5.0
+
+
+def best_candidates(points: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per frame, the candidate (B x F x 3) of highest ``values`` (B x F x K) among ``points``
+    (B x F x K x 3), and that value (B x F)."""
+    top = values.argmax(dim=-1, keepdim=True)  # B x F x 1
+    best = torch.gather(points, 2, top[..., None].expand(-1, -1, 1, 3))[:, :, 0]
+    return best, torch.gather(values, 2, top)[..., 0]
+
+
+class CandidateSearch:
+    """Coarse grid, refinement, delay fit and exact hill climb over a region (see the module docstring)."""
+
+    def __init__(self, steering: Steering, region: torch.Tensor, coarse_step: float = 1.0, fine_step: float = 0.0625,
+                 candidates: int = 32, frame_candidates: int = 4, search_groups: int = 1, refine_levels: int = 1,
+                 fit_delays: bool = True):
+        """Args:
+            steering: the geometry the responses are read with.
+            region: the searched region (3 x 2, m, rig frame); :meth:`set_region` changes it.
+            coarse_step, fine_step, candidates, frame_candidates, search_groups, refine_levels, fit_delays:
+                as in :class:`zoo.nets.phase.srp_phat.SRPPhat`.
+        """
+        self.steering = steering
+        self.region = region
+        self.coarse_step, self.fine_step = float(coarse_step), float(fine_step)
+        self.frame_candidates, self.search_groups = int(frame_candidates), int(search_groups)
+        if self.search_groups < 1:
+            raise ValueError(f"srp_phat: search_groups must be >= 1, got {search_groups}")
+        self.candidates = int(candidates)
+        self.refine_levels = int(refine_levels)
+        self.uses_delay_fit = bool(fit_delays)
+        self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+
+    def set_region(self, region: torch.Tensor) -> None:
+        """Search ``region`` (3 x 2) from now on; the coarse grids are rebuilt."""
+        self.region = region
+        self._coarse.clear()
+
+    def clamp(self, points: torch.Tensor) -> torch.Tensor:
+        """Points (... x 3) moved to the nearest point of the region."""
+        return torch.maximum(torch.minimum(points, self.region[:, 1].float()), self.region[:, 0].float())
+
+    def coarse_grid(self, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The coarse cells (centres G x 3 and sides G) and their columns in the flattened pooled
+        correlations (G x pairs), computed once per geometry.
+
+        Cells of ``coarse_step`` are split into eight until the delays each spans stay within
+        ``MAX_COARSE_WIDTH`` lags (cells near the array span many more than far ones), so every cell's
+        pooled score bounds its contents about equally tightly and a far peak is not crowded out of
+        the candidates by loose near cells.
+        """
+        key = mics.numpy().tobytes()
+        if key not in self._coarse:
+            centres, sides = cube_grid(self.region, self.coarse_step)[0], []
+            step, done = self.coarse_step, []
+            offsets = torch.cartesian_prod(*[torch.tensor([-0.25, 0.25])] * 3)
+            while centres.numel():
+                width = self.steering.pair_geometry(centres, mics)[1].amax(dim=1) * self.steering.lag_scale(step)
+                keep = (width <= MAX_COARSE_WIDTH) | (step / 2 < self.fine_step)
+                done.append(centres[keep])
+                sides.append(torch.full((int(keep.sum()),), step))
+                centres = (centres[~keep][:, None, :] + offsets * step).reshape(-1, 3)
+                step /= 2
+            grid, side = torch.cat(done), torch.cat(sides)
+            self._coarse[key] = (grid, side, self.steering.columns(grid, mics, side[:, None]))
+        return self._coarse[key]
+
+    def refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor,
+               keep: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One level: the 27 cubes of half the step around each point (N x k x 3), scored on the pooled
+        correlations ``flat``; the ``keep`` best (points, steps, scores)."""
+        n = points.shape[0]
+        offsets = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)  # 27 x 3
+        steps = steps / 2
+        children = self.clamp((points[:, :, None, :] + offsets * steps[..., None, None]).reshape(n, -1, 3))
+        child_steps = steps[:, :, None].expand(-1, -1, offsets.shape[0]).reshape(n, -1)
+        weights = self.steering.terms(mics.shape[0]).weights
+        scores = gather(flat, self.steering.columns(children, mics, child_steps[..., None]), weights)
+        best = scores.topk(min(keep, children.shape[1]), dim=1)
+        return (torch.gather(children, 1, best.indices[..., None].expand(-1, -1, 3)),
+                torch.gather(child_steps, 1, best.indices), best.values)
+
+    def refine_exact(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Hill-climb each point (N x K x 3) on a frame's exact response: at every level the best of the 27
+        points one step around it, the step halving from ``2 ** (refine_levels - 1) * fine_step`` down to
+        ``fine_step``. Returns the points and their responses (N x K)."""
+        offsets = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)  # 27 x 3 (the centre included)
+        n, k = points.shape[:2]
+        for level in reversed(range(self.refine_levels)):
+            step = self.fine_step * 2 ** level
+            children = self.clamp(points[:, :, None, :] + offsets * step)  # N x K x 27 x 3
+            scores = self.steering.response(frames, children.reshape(n, -1, 3), mics).reshape(n, k, -1)
+            best = scores.argmax(dim=-1)
+            points = torch.gather(children, 2, best[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
+        return points, self.steering.response(frames, points, mics)
+
+    def fit_delays(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
+        """Move each candidate (N x K x 3) to the point whose pair delays best match the frame's.
+
+        For every pair, the correlation peak within ``FIT_SEARCH`` lags of the candidate's delay is
+        located to a fraction of a lag (parabola through the peak and its neighbours); a few damped
+        Gauss-Newton steps then fit the point to those delays, weighted by the peaks' heights. The
+        delays pin the direction, and their small differences (the wavefront's curvature) the range,
+        which a grid search cannot resolve without a grid finer than its cost allows.
+        """
+        n, k = points.shape[:2]
+        lags = frames.shape[-1]
+        position = self.steering.pair_geometry(points, mics, direct_only=True)[0]  # N x K x P
+        window = torch.arange(-FIT_SEARCH, FIT_SEARCH + 1)
+        index = (position.round().long()[..., None] + window).clamp(1, lags - 2)  # N x K x P x W
+        batch = torch.arange(n)[:, None, None, None]
+        pairs = torch.arange(frames.shape[1])[None, None, :, None]
+        values = frames[batch, pairs, index]
+        peak = values.argmax(dim=-1, keepdim=True)
+        centre = torch.gather(index, -1, peak)[..., 0]
+        y0, y1, y2 = (frames[batch[..., 0], pairs[..., 0], centre + d] for d in (-1, 0, 1))
+        curvature = y0 - 2 * y1 + y2
+        shift = torch.where(curvature < 0, 0.5 * (y0 - y2) / curvature.clamp(max=-1e-9), torch.zeros_like(y1))
+        measured = centre.to(frames.dtype) + shift.clamp(-0.5, 0.5)
+        weight = y1.clamp_min(0.0) + 1e-3
+        first, second = pair_indices(mics.shape[0])
+        scale = self.steering.recipe.lag_rate / self.steering.speed_of_sound
+        m = mics.to(points.dtype)
+        for _ in range(FIT_STEPS):
+            direction = points[..., None, :] - m  # N x K x C x 3
+            unit = direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-6)
+            jacobian = (unit[..., first, :] - unit[..., second, :]) * scale  # N x K x P x 3
+            residual = self.steering.pair_geometry(points, mics, direct_only=True)[0] - measured  # N x K x P
+            jw = jacobian * weight[..., None]
+            normal = jw.transpose(-1, -2) @ jacobian
+            damping = FIT_DAMPING * normal.diagonal(dim1=-2, dim2=-1).mean(dim=-1)[..., None, None]
+            normal = normal + damping * torch.eye(3)
+            step = torch.linalg.solve(normal, -(jw.transpose(-1, -2) @ residual[..., None]))[..., 0]
+            points = self.clamp(points + step.clamp(-FIT_MAX_STEP, FIT_MAX_STEP))
+        return points
+
+    def fitted_candidates(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every frame's ``frame_candidates`` fitted points (B x F x K x 3) and their exact responses
+        (B x F x K), for windows of correlations B x F x pairs x lags.
+
+        The grid levels search each window (or each of its ``search_groups`` groups of frames) on its
+        frames' mean correlation (non-coherent, so the slow drift of the delays does not cancel it);
+        then each frame fits its window's (group's) best candidates to its own pair delays and refines them
+        on its exact response.
+        """
+        b, f, p, lags = correlation.shape
+        corr = correlation.to(torch.float32)
+        groups = torch.tensor_split(torch.arange(f), min(self.search_groups, f))
+        mean = torch.stack([corr[:, rows].mean(dim=1) for rows in groups], dim=1).reshape(-1, p, lags)
+        grid, sides, columns = self.coarse_grid(mics)
+        k = min(self.candidates, grid.shape[0])
+        flat = pooled(mean)
+        best = gather(flat, columns, self.steering.terms(mics.shape[0]).weights).topk(k, dim=1)  # B x G -> B x k
+        points, steps = grid[best.indices], sides[best.indices]
+        for _ in range(WINDOW_LEVELS):
+            points, steps, _ = self.refine(flat, points, steps, mics, k)
+        points = points[:, : self.frame_candidates].reshape(b, len(groups), -1, 3)
+        # per frame: fit its group's candidates to the pair delays measured near their own, then refine
+        # them on the exact (multipath) response
+        frames = corr.reshape(b * f, p, lags)
+        group_of_frame = torch.cat([torch.full((len(rows),), g) for g, rows in enumerate(groups)])
+        points = points[:, group_of_frame].reshape(b * f, -1, 3)
+        if self.uses_delay_fit:
+            points = self.fit_delays(frames, points, mics)
+        points, scores = self.refine_exact(frames, points, mics)
+        return points.reshape(b, f, -1, 3), scores.reshape(b, f, -1)
+
+    def peaks(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Peak point (B x F x 3) and response (B x F) of every frame of every window (B x F x pairs x lags):
+        the best of its :meth:`fitted_candidates`."""
+        return best_candidates(*self.fitted_candidates(correlation, mics))
