@@ -71,7 +71,7 @@ def _add_reader_options(parser: argparse.ArgumentParser) -> None:
 
 def _cmd_info(args: argparse.Namespace) -> int:
     from datamodules.formats import discover_all
-    from datamodules.inspect import describe, format_table
+    from datamodules.describe import describe, format_table
 
     options = _reader_options(args)
     paths = discover_all(args.paths)
@@ -100,7 +100,7 @@ def _cmd_convert(args: argparse.Namespace) -> int:
 
 
 def _cmd_label(args: argparse.Namespace) -> int:
-    from datamodules.inspect import format_table
+    from datamodules.describe import format_table
     from datamodules.label import label_paths
     from datamodules.teacher import TeacherConfig
     from datamodules.teacher.evaluate import pool_scores
