@@ -70,8 +70,8 @@ def _add_reader_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
-    from datamodules.formats import discover_all
     from datamodules.describe import describe, format_table
+    from datamodules.formats import discover_all
 
     options = _reader_options(args)
     paths = discover_all(args.paths)
@@ -212,7 +212,7 @@ def _cmd_smooth(args: argparse.Namespace) -> int:
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
-    from zoo.tracking import run_track
+    from zoo.deploy.tracking import run_track
 
     return run_track(args)
 

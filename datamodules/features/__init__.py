@@ -18,6 +18,7 @@ from datamodules.features.image import (
     published_dark,
     scale_image,
 )
+from datamodules.features.incremental import IncrementalMel
 from datamodules.features.mel import (
     MEL_RECIPES,
     MelRecipe,
@@ -48,6 +49,7 @@ __all__ = [
     "PUBLISHED_DARK_VALUE",
     "GccPhat",
     "ImageRecipe",
+    "IncrementalMel",
     "MelRecipe",
     "PhaseRecipe",
     "PhaseWindows",
