@@ -30,7 +30,6 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -41,7 +40,7 @@ from torch import nn
 
 from datamodules.errors import AauteError, ConfigError
 from datamodules.features import MEL_RECIPES, IncrementalMel, MelRecipe, mel_recipe
-from datamodules.streams import AudioSource, PcmSource, RecordingSource, WavSource
+from datamodules.streams import AudioSource
 from zoo.robust_smoothing import OnlineRow, OnlineSmoother
 from zoo.smoothing import SMOOTHED_COLUMNS
 
@@ -349,58 +348,3 @@ class Tracker:
                                 f"{self.window / self.source.sample_rate:g} s window model {self.model.name!r} needs "
                                 f"for one position; nothing to track")
         return report
-
-
-# ============================================================================================ command
-
-
-def open_source(audio: str, args: Any) -> AudioSource:
-    """The source ``audio`` names: ``-`` (raw PCM on stdin), a ``.wav`` file, or a recording."""
-    if audio == "-":
-        missing = [flag for flag, value in (("--channels", args.channels), ("--rate", args.rate)) if value is None]
-        if missing:
-            raise ConfigError(f"raw PCM on stdin needs {' and '.join(missing)} (and --format, default s16le)")
-        return PcmSource(sys.stdin.buffer, args.channels, args.rate, args.format, args.mic_positions, args.t0,
-                         args.stall_timeout)
-    path = Path(audio)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such audio file or recording")
-    if path.suffix.lower() == ".wav":
-        return WavSource(path, args.mic_positions, args.t0)
-    if args.mic_positions is not None:
-        log.info("%s: the recording's own microphone positions are used (--mic-positions ignored)", path)
-    return RecordingSource(path, realtime=args.realtime)
-
-
-def run_track(args: Any) -> int:
-    """``aaute track`` (its arguments: ``zoo.cli``): track, write the rows, print the report to stderr."""
-    from datamodules.atomic import atomic_write
-    from zoo.cli import check_output
-
-    torch.set_num_threads(max(1, int(args.threads)))
-    model = load_tracking_model(args.ckpt_path, args.weights, args.recipe, args.window_seconds)
-    source = open_source(args.audio, args)
-    log.info("tracking %s (%d channels, %g Hz; microphones from %s) with %s from %s: recipe %s, %g s windows, "
-             "lag %g s", source.name, source.channels, source.sample_rate, source.mic_source, model.name,
-             model.source, model.recipe.name, model.window_seconds, args.lag)
-    source_path = Path(args.audio) if args.audio != "-" else Path(os.devnull)
-    for out in (args.out, args.mcap_out):
-        if out is not None:
-            check_output(source_path, Path(out), args.overwrite)
-    with ExitStack() as stack:
-        writers: list[Any] = []
-        if args.out is None and args.mcap_out is None or args.stdout:
-            writers.append(CsvWriter(sys.stdout))
-        if args.out is not None:
-            tmp = stack.enter_context(atomic_write(args.out))
-            writers.append(CsvWriter(stack.enter_context(open(tmp, "w"))))
-        mcap_writer = None
-        if args.mcap_out is not None:
-            tmp = stack.enter_context(atomic_write(args.mcap_out))
-            mcap_writer = McapTrackWriter(stack.enter_context(open(tmp, "wb")), args.topic)
-            writers.append(mcap_writer)
-        report = Tracker(model, source, writers, lag=args.lag, preset=args.preset, batch=args.batch).run()
-        if mcap_writer is not None:
-            mcap_writer.finish()
-    sys.stderr.write(f"aaute track: {report.summary()}\n")
-    return 0
