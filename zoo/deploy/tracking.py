@@ -1,4 +1,4 @@
-"""Real-time tracking from audio alone (``aaute track``): audio blocks -> mel front end -> net -> causal smoother.
+"""Real-time tracking from audio alone, the engine of ``aaute track``: blocks -> mel front end -> net -> smoother.
 
 The audio arrives in blocks of one hop (0.1 s) from an :class:`~datamodules.streams.AudioSource` (a
 recording of any layout the project reads, played as fast as possible or at real time; a WAV file; raw
@@ -17,7 +17,8 @@ Bad input: a block holding NaN or infinite samples is skipped and reported, and 
 from a window containing it (the recording readers refuse such audio themselves); a stream that stalls,
 ends inside a block or is interrupted ends the run cleanly after the smoother has emitted what it holds;
 audio shorter than one window is an error. The sources refuse bad bytes themselves
-(:mod:`datamodules.streams`).
+(:mod:`datamodules.streams`). The command (its arguments, the source they name, the output files) is
+:mod:`zoo.cli.track`.
 """
 
 from __future__ import annotations
@@ -51,17 +52,6 @@ HOP_SECONDS = 0.1  #: one position per 0.1 s, the 10 Hz of MMAUD's ground truth 
 
 class TrackingError(AauteError, ValueError):
     """Audio or a model that cannot be tracked as asked (the message names the source and what was expected)."""
-
-
-def _silence_stdout() -> None:
-    """Point stdout at /dev/null after its reader closed it, so that exiting does not fail on a flush."""
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, sys.stdout.fileno())
-    except (OSError, ValueError, io.UnsupportedOperation):
-        pass
-    finally:
-        os.close(devnull)
 
 
 # ============================================================================================ model
@@ -220,6 +210,17 @@ class TrackingReport:
                 f"({busy:.1f}x counting compute only, {cpu:.1f}x in CPU time); STFT frames computed {share:.0%} of "
                 f"those used; "
                 f"{self.threads} torch thread(s); ended by {self.ended}")
+
+
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null after its reader closed it, so that exiting does not fail on a flush."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError, io.UnsupportedOperation):
+        pass
+    finally:
+        os.close(devnull)
 
 
 class Tracker:
