@@ -10,8 +10,12 @@ jsonargparse's summary of every attempt. Lightning is imported only when one of 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from datamodules.errors import AauteError
+
+if TYPE_CHECKING:
+    from lightning.pytorch.cli import LightningCLI
 
 LIGHTNING_COMMANDS = ("fit", "validate", "test", "predict")
 #: TrajectoryTask arguments that belong to a run, not to a checkpoint (kept from the command line)
@@ -19,7 +23,7 @@ RUN_SETTINGS = ("predictions_dir", "predictions_topic", "smooth", "smoother")
 
 
 def lightning_cli(argv: Sequence[str] | None, run: bool = True, instantiate: bool = True,
-                  exit_on_error: bool = True):
+                  exit_on_error: bool = True) -> LightningCLI:
     """LightningCLI over TrajectoryTask and the MMAUD DataModule, as ``aaute fit|validate|test|predict`` builds it.
 
     ``argv`` None reads ``sys.argv``. With ``run=False`` the argument list has no subcommand and the
