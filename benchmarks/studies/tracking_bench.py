@@ -56,9 +56,9 @@ def _median_ms(values: list[float]) -> float:
 
 def stage_times(model, audio: np.ndarray, rate: float) -> dict[str, float]:
     """Median ms per update of each stage alone, over the windows of ``audio`` (channels x samples)."""
-    from datamodules.features import mel_features
+    from datamodules.features import IncrementalMel, mel_features
+    from zoo.deploy.tracking import HOP_SECONDS
     from zoo.robust_smoothing import OnlineSmoother
-    from zoo.tracking import HOP_SECONDS, IncrementalMel
 
     block, window = int(round(HOP_SECONDS * rate)), int(round(model.window_seconds * rate))
     front = IncrementalMel(model.recipe, rate, audio.shape[0], window)
@@ -99,7 +99,8 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(args.threads)
 
     from datamodules.formats import open_recording
-    from zoo.tracking import RecordingSource, Tracker, load_tracking_model
+    from datamodules.streams import RecordingSource
+    from zoo.deploy.tracking import Tracker, load_tracking_model
 
     args.data.mkdir(parents=True, exist_ok=True)
     path = _recording(args.data, args.seconds)

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from datamodules.audio_export import encode, write_pcm, write_wav
+from datamodules.cli import main
 from datamodules.errors import ConfigError
 from datamodules.formats import open_recording
-from zoo.cli import main
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,7 @@ import pytest
 from mcap.reader import make_reader
 from mcap.writer import Writer as RawWriter
 
-from benchmarks.cli import main
+from datamodules.cli import main
 from datamodules.formats import mcap_file, open_recording
 from datamodules.formats.mcap_file import McapIndex, write_mcap
 from datamodules.recording import ArrayAudio, RecordingError, Track
@@ -245,25 +245,6 @@ def test_duplicate_sequence_ids_name_the_ids_and_files(simulated_dir, tmp_path):
         module.setup("fit")
 
 
-def test_smooth_never_writes_over_its_input_and_asks_before_replacing(tmp_path, capsys):
-    t = 1692845357.0 + np.arange(50) * 0.1
-    src = tmp_path / "track.csv"
-    src.write_text("timestamp,x,y,z\n" + "".join(f"{v:.3f},1,2,3\n" for v in t))
-    before = tree_hashes(tmp_path)
-    assert main(["smooth", str(src), str(src)]) == 2
-    assert main(["smooth", str(src), str(src), "--overwrite"]) == 2
-    err = capsys.readouterr().err.splitlines()
-    assert len(err) == 2 and all("the output is the input" in line and "track.csv" in line for line in err)
-    dst = tmp_path / "smoothed.csv"
-    dst.write_text("keep me\n")
-    before = tree_hashes(tmp_path)
-    assert main(["smooth", str(src), str(dst)]) == 2
-    assert "smoothed.csv already exists; refusing to overwrite it (use --overwrite)" in capsys.readouterr().err
-    assert tree_hashes(tmp_path) == before
-    assert main(["smooth", str(src), str(dst), "--overwrite"]) == 0
-    assert dst.read_text().startswith("timestamp,x,y,z,std_x")
-
-
 def test_stale_temporary_files_of_a_killed_write_are_removed_and_reported(simulated_dir, tmp_path, caplog):
     out = tmp_path / "out"
     out.mkdir()
@@ -342,7 +323,7 @@ def test_ctrl_c_stops_simulate_at_once_and_a_rerun_resumes(tmp_path):
     import sys
 
     out = tmp_path / "sim"
-    command = [sys.executable, "-m", "benchmarks.cli", "simulate", "--out", str(out), "--sequences", "6",
+    command = [sys.executable, "-m", "datamodules.cli", "simulate", "--out", str(out), "--sequences", "6",
                "--seconds", "1", "--no-camera", "--workers", "2"]
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     process = subprocess.Popen(command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

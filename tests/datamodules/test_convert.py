@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from datamodules.cli import main
 from datamodules.convert import convert, mcap_name
 from datamodules.formats import discover_recordings, open_recording
 from datamodules.formats.mcap_file import read_mcap, write_mcap
@@ -14,7 +15,6 @@ from datamodules.recording import RecordingError
 from tests.datamodules.test_format_derived_npy import make_derived
 from tests.datamodules.test_format_ug2 import make_ug2_sequence
 from tests.datamodules.test_mcap_format import make_recording
-from zoo.cli import main
 
 
 @pytest.fixture()

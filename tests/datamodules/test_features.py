@@ -9,6 +9,7 @@ import torchaudio
 
 from datamodules.features import (
     MEL_RECIPES,
+    IncrementalMel,
     audio_window,
     image_features,
     image_recipe,
@@ -127,3 +128,27 @@ def test_image_recipe_crops_the_left_camera_and_scales():
     assert torch.allclose(scaled, torch.full_like(scaled, 200 / 127.5 - 1))
     dark = scale_image(published_dark(small))
     assert torch.allclose(dark, torch.full_like(dark, 3 / 127.5 - 1))
+
+
+@pytest.mark.parametrize(("recipe", "rate"), [("aaute", 48000.0), ("aaute_joint", 46080.0), ("avfdti", 48000.0),
+                                              ("avfdti_13", 48000.0)])
+def test_incremental_mel_equals_the_offline_recipe(recipe, rate):
+    rng = np.random.default_rng(1)
+    n = int(3.3 * rate)
+    audio = (rng.standard_normal((4, n)) * np.linspace(0.05, 1.0, n)).astype(np.float32)
+    window, block = int(2 * rate), int(0.1 * rate)
+    front = IncrementalMel(mel_recipe(recipe), rate, 4, window)
+    checked, distinct, edges = 0, set(), 0
+    for k in range(n // block):
+        front.push(audio[:, k * block:(k + 1) * block])
+        stop = (k + 1) * block
+        if stop >= window:
+            reference = mel_features(audio[:, stop - window:stop], rate, mel_recipe(recipe))
+            assert torch.allclose(front.features(), reference, atol=1e-5, rtol=0)
+            checked += 1
+            distinct |= set((stop - window + front.offsets[front.inner]).tolist())
+            edges += int((~front.inner).sum())
+    assert checked == 14
+    # each frame inside a window was computed once, whichever windows share it; only edge frames are per window
+    assert front.computed == len(distinct) + edges
+    assert front.used == 14 * front.frames

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from datamodules.cli import main
 from datamodules.formats import derived_npy, discover_recordings, open_recording
 from datamodules.formats.mcap_file import read_mcap, write_mcap
 from datamodules.recording import RecordingError
-from zoo.cli import main
 
 CHUNK = 480  # samples per file (TAME files hold 3100; small here to keep the test fast)
 

@@ -199,8 +199,8 @@ def test_flight_bags_read_into_one_recording(tmp_path, compression, caplog):
 
 
 def test_converts_to_mcap_and_info(tmp_path, capsys):
+    from datamodules.cli import main
     from datamodules.convert import convert
-    from zoo.cli import main
 
     truth = write_flight(tmp_path / "flight", "BZ2")
     (written,) = convert(tmp_path / "flight", tmp_path / "out")

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from datamodules.cli import main
 from datamodules.formats import open_recording
 from datamodules.formats.mcap_file import write_mcap
 from datamodules.recording import ORIGIN_DRONE, ORIGIN_FALSE
 from datamodules.simulate.drones import drone_spec
 from datamodules.simulate.simulator import SimulationConfig, simulate_recording
 from tests.recording_checks import assert_same_recording
-from zoo.cli import main
 
 
 @pytest.fixture(scope="module")

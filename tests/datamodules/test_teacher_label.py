@@ -7,9 +7,9 @@ import shutil
 import numpy as np
 import pytest
 
+from datamodules.cli import main
 from datamodules.formats.mcap_file import read_mcap
 from datamodules.label import label_one, label_paths
-from zoo.cli import main
 
 
 @pytest.fixture

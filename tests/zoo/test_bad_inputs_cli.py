@@ -1,5 +1,6 @@
-"""Training commands with bad input: one line naming the cause and exit code 2, never a traceback; a NaN
-loss is never trained on silently. Each case is a row: what to change, the words the line must hold."""
+"""The zoo's commands with bad input (training; ``smooth`` asked to write over a file): one line naming the cause
+and exit code 2, never a traceback; a NaN loss is never trained on silently. Each training case is a row: what
+to change, the words the line must hold."""
 
 from __future__ import annotations
 
@@ -131,3 +132,22 @@ def test_invalid_nan_targets_are_masked_not_trained_on():
     loss, _ = task.objective(outputs, batch)
     assert loss is not None and np.isfinite(float(loss))
     task._check_finite(loss, outputs, batch, "training")  # no error
+
+
+def test_smooth_never_writes_over_its_input_and_asks_before_replacing(tmp_path, capsys):
+    t = 1692845357.0 + np.arange(50) * 0.1
+    src = tmp_path / "track.csv"
+    src.write_text("timestamp,x,y,z\n" + "".join(f"{v:.3f},1,2,3\n" for v in t))
+    before = tree_hashes(tmp_path)
+    assert main(["smooth", str(src), str(src)]) == 2
+    assert main(["smooth", str(src), str(src), "--overwrite"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and all("the output is the input" in line and "track.csv" in line for line in err)
+    dst = tmp_path / "smoothed.csv"
+    dst.write_text("keep me\n")
+    before = tree_hashes(tmp_path)
+    assert main(["smooth", str(src), str(dst)]) == 2
+    assert "smoothed.csv already exists; refusing to overwrite it (use --overwrite)" in capsys.readouterr().err
+    assert tree_hashes(tmp_path) == before
+    assert main(["smooth", str(src), str(dst), "--overwrite"]) == 0
+    assert dst.read_text().startswith("timestamp,x,y,z,std_x")

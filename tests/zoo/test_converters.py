@@ -12,11 +12,11 @@ from torch.nn import functional as F
 
 from tests.zoo import original_layouts as originals
 from zoo.cli import main
+from zoo.cli.weights import FORMATS as CLI_FORMATS
 from zoo.registry import get_model
 from zoo.weights import load_pretrained
 from zoo.weights.converters import FORMATS, Conversion, UnknownLayoutError, convert_state, to_original
 from zoo.weights.files import CheckpointError, WeightsMismatchError
-from zoo.weights_cli import FORMATS as CLI_FORMATS
 
 CASES = [
     ("aaute", originals.aaute_student, "student"),

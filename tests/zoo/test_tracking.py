@@ -1,4 +1,4 @@
-"""aaute track: the streaming front end, equality with offline predict + causal smoothing, and bad input."""
+"""aaute track: equality with offline predict + causal smoothing, the audio sources, and bad input."""
 
 from __future__ import annotations
 
@@ -11,16 +11,10 @@ import numpy as np
 import pytest
 import torch
 
-from datamodules.features import mel_features, mel_recipe
+from datamodules.features import mel_features
 from datamodules.formats import open_recording
-from zoo.tracking import (
-    IncrementalMel,
-    PcmSource,
-    RecordingSource,
-    Tracker,
-    TrackingError,
-    load_tracking_model,
-)
+from datamodules.streams import PcmSource, RecordingSource, StreamError
+from zoo.deploy.tracking import Tracker, TrackingError, load_tracking_model
 
 
 class Rows:
@@ -84,33 +78,6 @@ def _matched(tracked: tuple, offline) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return mean[index], std[index], np.asarray(offline.mean), np.asarray(offline.std)
 
 
-# ---------------------------------------------------------------------------------------------- front end
-
-
-@pytest.mark.parametrize(("recipe", "rate"), [("aaute", 48000.0), ("aaute_joint", 46080.0), ("avfdti", 48000.0),
-                                              ("avfdti_13", 48000.0)])
-def test_incremental_mel_equals_the_offline_recipe(recipe, rate):
-    rng = np.random.default_rng(1)
-    n = int(3.3 * rate)
-    audio = (rng.standard_normal((4, n)) * np.linspace(0.05, 1.0, n)).astype(np.float32)
-    window, block = int(2 * rate), int(0.1 * rate)
-    front = IncrementalMel(mel_recipe(recipe), rate, 4, window)
-    checked, distinct, edges = 0, set(), 0
-    for k in range(n // block):
-        front.push(audio[:, k * block:(k + 1) * block])
-        stop = (k + 1) * block
-        if stop >= window:
-            reference = mel_features(audio[:, stop - window:stop], rate, mel_recipe(recipe))
-            assert torch.allclose(front.features(), reference, atol=1e-5, rtol=0)
-            checked += 1
-            distinct |= set((stop - window + front.offsets[front.inner]).tolist())
-            edges += int((~front.inner).sum())
-    assert checked == 14
-    # each frame inside a window was computed once, whichever windows share it; only edge frames are per window
-    assert front.computed == len(distinct) + edges
-    assert front.used == 14 * front.frames
-
-
 # ---------------------------------------------------------------------------------------------- equality
 
 
@@ -151,7 +118,7 @@ def test_track_from_wav_equals_offline_and_says_where_mics_come_from(recording_p
                                                                      offline_track, tmp_path):
     from scipy.io import wavfile
 
-    from zoo.tracking import WavSource
+    from datamodules.streams import WavSource
 
     data, rate, t0 = _pcm(recording_path)
     wav = tmp_path / "audio.wav"
@@ -163,13 +130,13 @@ def test_track_from_wav_equals_offline_and_says_where_mics_come_from(recording_p
     mean, _, offline_mean, _ = _matched(rows.arrays(), offline_track)
     assert np.abs(mean - offline_mean).max() < 1e-4
     assert WavSource(wav, mic_positions=_mics(tmp_path, 4)).mic_source == str(_mics(tmp_path, 4))
-    with pytest.raises(TrackingError, match="expected 4 rows of x y z"):
+    with pytest.raises(StreamError, match="expected 4 rows of x y z"):
         WavSource(wav, mic_positions=_mics(tmp_path, 3))
 
 
 def test_realtime_replay_paces_blocks(recording_path, monkeypatch):
     delays = []
-    monkeypatch.setattr("zoo.tracking.time.sleep", delays.append)
+    monkeypatch.setattr("datamodules.streams.time.sleep", delays.append)
     blocks = list(RecordingSource(recording_path, realtime=True).blocks(4800))
     assert len(blocks) == 40 and len(delays) >= 35  # replayed far faster than 0.1 s a block: each one waits
     assert max(delays) <= 4.0 + 1e-6
@@ -218,7 +185,7 @@ def test_wrong_byte_count_names_channels_and_format(recording_path, student_weig
     data, rate, _ = _pcm(recording_path, seconds=2.5)
     model = load_tracking_model(weights=student_weights)
     source = PcmSource(io.BytesIO(data[:-6]), 4, rate, "s16le")  # 3 channels' worth short of a frame
-    with pytest.raises(TrackingError, match="not a whole number of 4-channel s16le frames.*--channels and --format"):
+    with pytest.raises(StreamError, match="not a whole number of 4-channel s16le frames.*--channels and --format"):
         Tracker(model, source, [Rows()]).run()
 
 
@@ -226,7 +193,7 @@ def test_integer_audio_read_as_float_is_refused(recording_path, student_weights)
     data, rate, _ = _pcm(recording_path, seconds=2.5)
     model = load_tracking_model(weights=student_weights)
     source = PcmSource(io.BytesIO(data[: len(data) // 16 * 16]), 4, rate, "f32le")
-    with pytest.raises(TrackingError, match="float32 audio in \\[-1, 1\\].*--format"):
+    with pytest.raises(StreamError, match="float32 audio in \\[-1, 1\\].*--format"):
         Tracker(model, source, [Rows()]).run()
 
 
@@ -360,8 +327,8 @@ def test_interrupt_ends_the_run_cleanly(recording_path, student_weights):
 
 
 def test_csv_lines_are_flushed_one_by_one():
+    from zoo.deploy.tracking import CsvWriter
     from zoo.robust_smoothing import OnlineRow
-    from zoo.tracking import CsvWriter
 
     class Counting(io.StringIO):
         flushes = 0

@@ -14,26 +14,23 @@ once the task is built.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from zoo.weights.files import CheckpointContents, CheckpointError, WeightsMismatchError, load_state_checked
-
-
-@dataclass
-class PendingWeights:
-    """A state dict to load into the task's net after LightningCLI has built it."""
-
-    contents: CheckpointContents
+from zoo.weights.files import (
+    CheckpointContents,
+    CheckpointError,
+    WeightsMismatchError,
+    load_state_checked,
+    parse_contents,
+    read_file,
+)
 
 
 def _checkpoint_net(path: Path) -> tuple[str | None, dict[str, Any]]:
     """The net name and kwargs a project ``.ckpt`` records (memory-mapped read, weights only)."""
-    from zoo.weights.files import parse_contents, read_file
-
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except Exception:  # not an mmap-able archive: the full reader gives the precise error
@@ -65,8 +62,14 @@ def _refuse_or_follow(section: Any, source: str, net: str, net_kwargs: dict[str,
         data_args["inputs"] = model_class(net).resolve_input_recipes(net_kwargs.get("input_recipes"))
 
 
-def check_run(subcommand: str, section: Any) -> PendingWeights | None:
-    """Check (and for ``--weights``, resolve) this run's checkpoint; return weights to load after building."""
+def check_run(subcommand: str, section: Any) -> CheckpointContents | None:
+    """Check (and for ``--weights``, resolve) this run's checkpoint; return weights to load after building.
+
+    Returns:
+        The contents of a weights file whose state dict goes into the task's net once LightningCLI has built
+        it (:func:`load_pending`); None when there is nothing to load (no ``--weights``, or a ``.ckpt`` that
+        becomes the run's ``ckpt_path``).
+    """
     from zoo.weights import resolve_weights
 
     ckpt_path, weights = section.get("ckpt_path"), section.get("weights")
@@ -87,7 +90,7 @@ def check_run(subcommand: str, section: Any) -> PendingWeights | None:
             init_args["net_kwargs"] = dict(contents.net_kwargs)
         elif entry is not None:
             init_args["net_kwargs"] = dict(entry.net_kwargs)
-        return PendingWeights(contents)
+        return contents
     if ckpt_path and Path(ckpt_path).is_file():
         net, net_kwargs = _checkpoint_net(Path(ckpt_path))
         if net is not None:
@@ -95,7 +98,7 @@ def check_run(subcommand: str, section: Any) -> PendingWeights | None:
     return None
 
 
-def load_pending(task: Any, pending: PendingWeights | None) -> None:
+def load_pending(task: Any, pending: CheckpointContents | None) -> None:
     """Load the resolved ``--weights`` into the built task's net (strict: every key and shape must fit)."""
     if pending is not None:
-        load_state_checked(task.net, pending.contents.state_dict, str(pending.contents.path), task.hparams.net)
+        load_state_checked(task.net, pending.state_dict, str(pending.path), task.hparams.net)

@@ -23,7 +23,7 @@ def _status(entry) -> str:
 
 
 def _cmd_weights_list(args: argparse.Namespace) -> int:
-    from datamodules.inspect import format_table
+    from datamodules.describe import format_table
     from zoo.weights import all_weights, weights_dir
 
     rows = []

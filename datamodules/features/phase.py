@@ -1,0 +1,220 @@
+"""Phase recipes: GCC-PHAT of every microphone pair on short frames before the label time.
+
+The features of the phase-feature nets (SRP-PHAT, the phase student): :class:`PhaseRecipe` says
+what is computed, :class:`GccPhat` computes it at one sample rate, :func:`phase_features` applies it
+to one window and :class:`PhaseWindows` to the windows of a stream (with the causal static-source
+suppression some recipes ask for).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+
+import numpy as np
+import torch
+
+from datamodules.recording import AudioStream, RecordingError
+
+
+@dataclass(frozen=True)
+class PhaseRecipe:
+    """GCC-PHAT of every microphone pair on the last ``frames`` short frames before the label time.
+
+    Each frame (``frame_seconds``, Hann window, zero-padded to twice its length so the correlation
+    does not wrap) gives one cross-spectrum per pair ``(i, j)``, i < j; PHAT keeps only its phase
+    inside ``[f_min, f_max]``, and the inverse FFT is taken at ``lag_rate`` (band-limited
+    interpolation of the correlation), over the lags ``-max_delay .. +max_delay`` seconds. The
+    value at lag ``tau`` is 1 for a perfectly coherent source whose sound reaches microphone ``i``
+    ``tau`` seconds after microphone ``j``, and near 0 for incoherent noise, at any sample rate.
+
+    With ``suppress_static``, a causal long-term mean of each pair's cross-spectrum (an exponential
+    average with time constant ``static_seconds`` over the frames before the window, never the
+    window itself or the future) is subtracted before PHAT: a static coherent source such as a
+    rooftop HVAC unit fades out, and so would a drone that hovers for longer than the time constant.
+    """
+
+    name: str
+    frame_seconds: float = 4096 / 48000  #: 85.3 ms: delays drift ~25 samples/s, so frames stay short
+    frames: int = 6  #: the last 0.51 s of the window
+    max_delay: float = 0.0145  #: 5.06 m of path at 349 m/s: the 4.36 m diagonal of distributed4 + margin
+    lag_rate: float = 24000.0  #: lag resolution 41.7 us (14.5 mm of path)
+    f_min: float = 100.0  #: below: wind and HVAC rumble, few cycles per frame
+    f_max: float = 8000.0  #: above: little drone energy left at range (rotor harmonics and broadband)
+    suppress_static: bool = False
+    static_seconds: float = 30.0
+
+    def num_lags(self) -> int:
+        return 2 * int(round(self.max_delay * self.lag_rate)) + 1
+
+    def lags(self) -> np.ndarray:
+        """The lag of each output column (s)."""
+        half = int(round(self.max_delay * self.lag_rate))
+        return np.arange(-half, half + 1) / self.lag_rate
+
+    def output_shape(self, channels: int) -> tuple[int, int, int]:
+        """pairs x frames x lags for ``channels`` microphones."""
+        return (len(mic_pairs(channels)), self.frames, self.num_lags())
+
+    @property
+    def span_seconds(self) -> float:
+        """Audio seconds one window reads (the frames, back to back, ending at the label time)."""
+        return self.frames * self.frame_seconds
+
+    def key(self) -> str:
+        return hashlib.sha256(repr(sorted(asdict(self).items())).encode()).hexdigest()[:12]
+
+
+PHASE_RECIPES: dict[str, PhaseRecipe] = {
+    r.name: r for r in (
+        PhaseRecipe("gcc_phat"),
+        PhaseRecipe("gcc_phat_static", suppress_static=True),
+        # the last 1.02 s / 1.96 s of the 2 s window: more frames integrate a weak source
+        PhaseRecipe("gcc_phat_1s", frames=12),
+        PhaseRecipe("gcc_phat_1s_static", frames=12, suppress_static=True),
+        PhaseRecipe("gcc_phat_2s", frames=23),
+        PhaseRecipe("gcc_phat_2s_static", frames=23, suppress_static=True),
+    )
+}
+
+
+def phase_recipe(name: str) -> PhaseRecipe:
+    try:
+        return PHASE_RECIPES[name]
+    except KeyError:
+        raise ValueError(f"unknown phase recipe {name!r}; known: {sorted(PHASE_RECIPES)}") from None
+
+
+@lru_cache(maxsize=8)
+def mic_pairs(channels: int) -> tuple[tuple[int, int], ...]:
+    """Every microphone pair (i, j), i < j, in the order of the phase features' first axis."""
+    if channels < 2:
+        raise RecordingError(f"phase features need at least 2 microphones, got {channels}")
+    return tuple((i, j) for i in range(channels) for j in range(i + 1, channels))
+
+
+def pair_indices(channels: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The first and second microphone of every pair of :func:`mic_pairs`, as index tensors."""
+    pairs = mic_pairs(channels)
+    return torch.tensor([i for i, _ in pairs]), torch.tensor([j for _, j in pairs])
+
+
+class GccPhat:
+    """The phase recipe at one sample rate: frames -> cross-spectra -> PHAT -> correlation at the lags."""
+
+    def __init__(self, recipe: PhaseRecipe, sample_rate: float, channels: int):
+        self.recipe = recipe
+        self.frame = int(round(recipe.frame_seconds * sample_rate))
+        self.n_fft = 2 * self.frame
+        self.n_out = int(round(self.n_fft * recipe.lag_rate / sample_rate))
+        half = int(round(recipe.max_delay * recipe.lag_rate))
+        if half >= self.n_out // 2:
+            raise ValueError(f"phase recipe {recipe.name!r}: max_delay {recipe.max_delay} s does not fit a "
+                             f"{recipe.frame_seconds} s frame")
+        self.lag_index = torch.arange(-half, half + 1) % self.n_out
+        freqs = np.fft.rfftfreq(self.n_fft, 1.0 / sample_rate)
+        keep = (freqs >= recipe.f_min) & (freqs <= min(recipe.f_max, recipe.lag_rate / 2))
+        self.bins = torch.from_numpy(np.flatnonzero(keep))
+        # a coherent pure delay sums to 2 K / n_out at its lag: scale it to 1
+        self.scale = self.n_out / (2.0 * max(int(keep.sum()), 1))
+        self.first, self.second = pair_indices(channels)
+        self.window = torch.hann_window(self.frame, periodic=False, dtype=torch.float64)
+
+    def cross_spectra(self, frames: torch.Tensor) -> torch.Tensor:
+        """C x F x frame samples -> pairs x F x band bins (complex128)."""
+        spectra = torch.fft.rfft(frames.to(torch.float64) * self.window, n=self.n_fft)[..., self.bins]
+        return spectra[self.first] * spectra[self.second].conj()
+
+    def correlate(self, cross: torch.Tensor) -> torch.Tensor:
+        """PHAT-weighted cross-spectra (pairs x F x band bins) -> pairs x F x lags (float32)."""
+        phat = cross / cross.abs().clamp_min(1e-30)
+        full = torch.zeros((*cross.shape[:-1], self.n_out // 2 + 1), dtype=phat.dtype)
+        full[..., self.bins] = phat
+        correlation = torch.fft.irfft(full, n=self.n_out) * self.scale
+        return correlation[..., self.lag_index].to(torch.float32)
+
+
+def split_frames(samples: np.ndarray, frame: int, frames: int) -> torch.Tensor:
+    """The last ``frames`` x ``frame`` samples of C x N audio as C x frames x frame."""
+    needed = frame * frames
+    if samples.shape[1] < needed:
+        raise RecordingError(f"phase features need {needed} samples per window, got {samples.shape[1]}")
+    tail = np.ascontiguousarray(samples[:, samples.shape[1] - needed:], dtype=np.float32)
+    if not np.isfinite(tail).all():
+        raise RecordingError("audio window holds NaN or infinite samples")
+    return torch.from_numpy(tail).reshape(samples.shape[0], frames, frame)
+
+
+def phase_features(samples: np.ndarray, sample_rate: float, recipe: PhaseRecipe) -> torch.Tensor:
+    """Apply ``recipe`` (without static suppression) to raw audio (C x N, ending at the label time).
+
+    Returns pairs x frames x lags (float32); see :class:`PhaseRecipe`.
+    """
+    gcc = _gcc_phat(recipe, float(sample_rate), samples.shape[0])
+    with torch.no_grad():
+        return gcc.correlate(gcc.cross_spectra(split_frames(samples, gcc.frame, recipe.frames)))
+
+
+@lru_cache(maxsize=8)
+def _gcc_phat(recipe: PhaseRecipe, sample_rate: float, channels: int) -> GccPhat:
+    return GccPhat(recipe, sample_rate, channels)
+
+
+class PhaseWindows:
+    """Phase features of the windows ending at increasing ``times`` of one audio stream.
+
+    Without static suppression each window is independent. With it, a causal exponential average
+    of every pair's cross-spectrum is carried along the stream on consecutive frames from the start
+    of the audio up to the start of each window, so windows must be asked for in time order (the
+    feature cache builds them so); asking out of order raises.
+    """
+
+    def __init__(self, audio: AudioStream, recipe: PhaseRecipe, times: np.ndarray, source: str = "audio"):
+        self.audio, self.recipe, self.times, self.source = audio, recipe, np.asarray(times, dtype=np.float64), source
+        self.gcc = _gcc_phat(recipe, float(audio.sample_rate), audio.num_channels)
+        self.mean: torch.Tensor | None = None  #: long-term mean cross-spectra (pairs x band bins)
+        self.next_frame = 0  #: first sample of the next frame to fold into the mean
+        self.folded = 0  #: frames folded into the mean so far
+        self.last = -1
+        frame_period = self.gcc.frame / audio.sample_rate
+        self.decay = float(np.exp(-frame_period / recipe.static_seconds))
+
+    def __call__(self, i: int) -> np.ndarray:
+        t_end = float(self.times[i])
+        try:
+            samples = self.audio.window(t_end, self.recipe.span_seconds)
+            frames = split_frames(samples, self.gcc.frame, self.recipe.frames)
+        except RecordingError as error:
+            raise RecordingError(f"{self.source}: window ending at {t_end:.3f} s: {error}") from None
+        with torch.no_grad():
+            cross = self.gcc.cross_spectra(frames)
+            if self.recipe.suppress_static:
+                if i <= self.last:
+                    raise ValueError("static suppression needs the windows in time order")
+                self._fold_past(self.audio.sample_index(t_end) - self.gcc.frame * self.recipe.frames)
+                if self.mean is not None:
+                    cross = cross - self.mean[:, None, :]
+            self.last = i
+            return self.gcc.correlate(cross).numpy()
+
+    def _fold_past(self, window_start: int) -> None:
+        """Fold every whole frame that ends before sample ``window_start`` into the long-term mean.
+
+        The first frames are averaged with equal weights, then exponentially (time constant
+        ``static_seconds``), so the mean is unbiased from the start.
+        """
+        frame = self.gcc.frame
+        while self.next_frame + frame <= window_start:
+            try:
+                samples = self.audio.read(self.next_frame, self.next_frame + frame)
+            except RecordingError as error:
+                raise RecordingError(f"{self.source}: {error}") from None
+            if not np.isfinite(samples).all():
+                start = self.audio.t0 + self.next_frame / self.audio.sample_rate
+                raise RecordingError(f"{self.source}: audio at {start:.3f} s holds NaN or infinite samples")
+            cross = self.gcc.cross_spectra(torch.from_numpy(samples)[:, None, :])[:, 0]
+            self.folded += 1
+            weight = max(1.0 / self.folded, 1.0 - self.decay)
+            self.mean = cross if self.mean is None else (1 - weight) * self.mean + weight * cross
+            self.next_frame += frame
