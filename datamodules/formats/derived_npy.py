@@ -450,18 +450,10 @@ def read_derived_npy(
     if missing not in ("error", "zeros"):
         raise RecordingError(f"{root}: missing_audio must be 'error' or 'zeros', got {missing!r}")
 
-    files = _sample_files(folder)
-    not_indexed = [p.name for p in folder.glob("*.npy") if _index_of(p) is None]
-    if not_indexed:
-        raise RecordingError(f"{folder}: audio files must be named <idx>.npy with an integer idx; "
-                             f"found {len(not_indexed)} others (e.g. {not_indexed[0]})")
-    probe = ChunkedNpyAudio(folder, sorted(files), rate, 0.0, missing)
-    duration = probe.chunk_duration
-    probe.t0 = offset + probe.first_index * duration
-    audio = probe
+    audio = _audio(folder, rate, offset, missing)
+    duration = audio.chunk_duration
     indices = np.arange(audio.first_index, audio.first_index + audio.num_samples // audio.chunk_length)
     times = label_times(offset, indices, duration)
-
     meta: dict[str, Any] = {
         "source_format": "derived_npy",
         "source_path": str(root.resolve()),
@@ -477,65 +469,18 @@ def read_derived_npy(
         "audio_missing_chunks": audio.missing_chunks,
         "folders": {},
     }
-
-    def pick(candidates: Sequence[str], values: int | None = 3) -> Path | None:
-        for name in candidates:
-            path = root / name / seq
-            if path.is_dir() and (values is None or _values_per_sample(path) == values):
-                return path
-        return None
-
-    ground_truth = pseudo = None
-    gt_folder = pick(GROUND_TRUTH_FOLDERS)
-    outside = {}
-    if gt_folder is not None:
-        ground_truth, outside["ground_truth"] = _read_track(gt_folder, indices, times, "ground truth")
-        meta["folders"]["ground_truth"] = gt_folder.parent.name
-    pseudo_folder = pick(PSEUDO_LABEL_FOLDERS)
-    if pseudo_folder is not None:
-        pseudo, outside["pseudo_label"] = _read_track(pseudo_folder, indices, times, "pseudo-label")
-        meta["folders"]["pseudo_labels"] = pseudo_folder.parent.name
+    outside: dict[str, int] = {}
+    ground_truth, pseudo = _tracks(root, seq, indices, times, meta["folders"], outside)
     class_folder = root / CLASS_FOLDER / seq
     class_folder = class_folder if class_folder.is_dir() and _values_per_sample(class_folder) == 1 else None
-
-    frames = None
-    image_folder = pick(IMAGE_FOLDERS, values=None)
-    if image_folder is not None:
-        images = {i: p for i, p in _sample_files(image_folder).items() if p.suffix != ".npy"}
-        inside = sorted(i for i in images if audio.first_index <= i < indices[-1] + 1)
-        outside["image"] = len(images) - len(inside)
-        if inside:
-            stamps = label_times(offset, np.asarray(inside), duration)
-            frames = FileImages(image_folder, stamps, [images[i].name for i in inside])
-            meta["folders"]["frames"] = image_folder.parent.name
-            gaps = count_gaps(stamps)
-            if gaps:
-                log.warning("%s: %d gap(s) in the images", image_folder, gaps)
-
-    detection = pick(DETECTION_FOLDERS, values=None)
-    if detection is not None:
-        if ground_truth is None:
-            log.warning("%s: visibility flags ignored: the sequence has no ground truth to attach them to", detection)
-        else:
-            visible = np.full(indices.size, np.nan)
-            for index, path in _sample_files(detection).items():
-                if audio.first_index <= index <= indices[-1]:
-                    visible[index - audio.first_index] = _values(path)[0]
-            ground_truth.quality["image_visible"] = visible
-            meta["folders"]["image_visible"] = detection.parent.name
+    frames = _images(root, seq, audio.first_index, indices, offset, duration, meta["folders"], outside)
+    _visibility(root, seq, audio.first_index, indices, ground_truth, meta["folders"])
     for what, count in outside.items():
         if count:
             log.warning("%s: %d %s file(s) lie outside the audio's chunk range %d..%d; ignored",
                         root, count, what, audio.first_index, int(indices[-1]))
-
-    if drone is not None or layout.get("drone") is not None:
-        chosen = _per_sequence(drone if drone is not None else layout.get("drone"), seq)
-        source = "given"
-    else:
-        chosen = None
-    if chosen is None:
-        chosen, source = _sequence_drone(seq, root, class_folder)
-    meta["drone_source"] = source
+    given_drone = drone if drone is not None else layout.get("drone")
+    chosen, meta["drone_source"] = _drone(seq, root, given_drone, class_folder)
     return Recording(
         sequence_id=seq,
         drone=chosen,
@@ -545,6 +490,93 @@ def read_derived_npy(
         frames=frames,
         meta=json_safe(meta),
     )
+
+
+def _audio(folder: Path, rate: float, offset: float, missing: str) -> ChunkedNpyAudio:
+    """The sequence's audio, its chunk index 0 starting at ``offset`` seconds."""
+    files = _sample_files(folder)
+    not_indexed = [p.name for p in folder.glob("*.npy") if _index_of(p) is None]
+    if not_indexed:
+        raise RecordingError(f"{folder}: audio files must be named <idx>.npy with an integer idx; "
+                             f"found {len(not_indexed)} others (e.g. {not_indexed[0]})")
+    audio = ChunkedNpyAudio(folder, sorted(files), rate, 0.0, missing)
+    audio.t0 = offset + audio.first_index * audio.chunk_duration
+    return audio
+
+
+def _pick(root: Path, seq: str, candidates: Sequence[str], values: int | None = 3) -> Path | None:
+    """The sequence's folder under the first candidate name that exists (and holds ``values`` per sample)."""
+    for name in candidates:
+        path = root / name / seq
+        if path.is_dir() and (values is None or _values_per_sample(path) == values):
+            return path
+    return None
+
+
+def _tracks(root: Path, seq: str, indices: np.ndarray, times: np.ndarray, folders: dict[str, str],
+            outside: dict[str, int]) -> tuple[Track | None, Track | None]:
+    """Ground truth and pseudo-labels at the label times (None when the layout has none).
+
+    Adds the folders read to ``folders`` and the count of label files outside the chunk range to ``outside``.
+    """
+    ground_truth = pseudo = None
+    gt_folder = _pick(root, seq, GROUND_TRUTH_FOLDERS)
+    if gt_folder is not None:
+        ground_truth, outside["ground_truth"] = _read_track(gt_folder, indices, times, "ground truth")
+        folders["ground_truth"] = gt_folder.parent.name
+    pseudo_folder = _pick(root, seq, PSEUDO_LABEL_FOLDERS)
+    if pseudo_folder is not None:
+        pseudo, outside["pseudo_label"] = _read_track(pseudo_folder, indices, times, "pseudo-label")
+        folders["pseudo_labels"] = pseudo_folder.parent.name
+    return ground_truth, pseudo
+
+
+def _images(root: Path, seq: str, first: int, indices: np.ndarray, offset: float, duration: float,
+            folders: dict[str, str], outside: dict[str, int]) -> FileImages | None:
+    """The camera frames of the chunks of the audio's range, stamped like the labels (None without any).
+
+    Adds the folder read to ``folders`` and the count of images outside the chunk range to ``outside``.
+    """
+    image_folder = _pick(root, seq, IMAGE_FOLDERS, values=None)
+    if image_folder is None:
+        return None
+    images = {i: p for i, p in _sample_files(image_folder).items() if p.suffix != ".npy"}
+    inside = sorted(i for i in images if first <= i < indices[-1] + 1)
+    outside["image"] = len(images) - len(inside)
+    if not inside:
+        return None
+    stamps = label_times(offset, np.asarray(inside), duration)
+    frames = FileImages(image_folder, stamps, [images[i].name for i in inside])
+    folders["frames"] = image_folder.parent.name
+    gaps = count_gaps(stamps)
+    if gaps:
+        log.warning("%s: %d gap(s) in the images", image_folder, gaps)
+    return frames
+
+
+def _visibility(root: Path, seq: str, first: int, indices: np.ndarray, ground_truth: Track | None,
+                folders: dict[str, str]) -> None:
+    """Attach the ``Detection_new`` flags (drone visible in the image) to the ground truth's quality."""
+    detection = _pick(root, seq, DETECTION_FOLDERS, values=None)
+    if detection is None:
+        return
+    if ground_truth is None:
+        log.warning("%s: visibility flags ignored: the sequence has no ground truth to attach them to", detection)
+        return
+    visible = np.full(indices.size, np.nan)
+    for index, path in _sample_files(detection).items():
+        if first <= index <= indices[-1]:
+            visible[index - first] = _values(path)[0]
+    ground_truth.quality["image_visible"] = visible
+    folders["image_visible"] = detection.parent.name
+
+
+def _drone(seq: str, root: Path, given: str | dict[str, str] | None, labels: Path | None) -> tuple[str | None, str]:
+    """The drone type as given (for this sequence), else from the names or class ids, and where it came from."""
+    chosen = _per_sequence(given, seq) if given is not None else None
+    if chosen is not None:
+        return chosen, "given"
+    return _sequence_drone(seq, root, labels)
 
 
 def open_derived(path: str | Path, **options: Any) -> Recording:

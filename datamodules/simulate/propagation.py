@@ -89,13 +89,3 @@ GROUNDS = {g.name: g for g in (CONCRETE, ASPHALT, GRASS)}
 def level_to_pressure(spl_db: float) -> float:
     """RMS pressure (Pa) of a sound pressure level in dB re 20 uPa."""
     return 20e-6 * 10.0 ** (spl_db / 20.0)
-
-
-def pressure_to_level(rms_pa: float | np.ndarray) -> np.ndarray:
-    """Sound pressure level in dB re 20 uPa of an RMS pressure."""
-    return 20.0 * np.log10(np.maximum(np.asarray(rms_pa, dtype=np.float64), 1e-30) / 20e-6)
-
-
-def a_weighted_power(frequency: np.ndarray, power: np.ndarray) -> float:
-    """A-weighted total of a power spectrum given as discrete lines (frequency, power)."""
-    return float(np.sum(np.asarray(power) * 10.0 ** (a_weighting_db(frequency) / 10.0)))

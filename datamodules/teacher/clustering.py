@@ -263,19 +263,44 @@ def extract_uav(
     if result.n_dynamic < max(min_samples, min_component_size):
         return chosen, result
     dyn_index = np.flatnonzero(dynamic)
-    sample = points[dyn_index]
-    labels = dbscan(sample, eps, min_samples, cube_m)
-    component, sizes = merge_clusters(sample, labels, merge_distance, min_component_size)
+    labels = dbscan(points[dyn_index], eps, min_samples, cube_m)  # step 1
+    component, sizes = merge_clusters(points[dyn_index], labels, merge_distance, min_component_size)  # step 2
     result.n_components = int(sizes.size)
     if sizes.size == 0:
         return chosen, result
-    keep = np.ones(sizes.size, dtype=bool)
-    if static is None and drop_extremes:
-        keep = drop_largest_and_smallest(sizes, drop_extremes_min_components)
-    static_points = points[~dynamic] if static is not None else None
-    best, best_density = -1, -np.inf
-    for c in np.flatnonzero(keep):
-        members = dyn_index[component == c]
+    paper_rule = static is None and drop_extremes  # step 3, only without a static map
+    keep = drop_largest_and_smallest(sizes, drop_extremes_min_components) if paper_rule else np.ones(sizes.size, bool)
+    candidates = _uav_candidates(points, frame_index, [dyn_index[component == c] for c in np.flatnonzero(keep)],
+                                 None if static is None else points[~dynamic], min_frames, max_frame_extent_m,
+                                 density_voxel_m, min_density, contact_m, max_contact_share)
+    result.n_candidates = len(candidates)
+    if candidates:
+        members, result.chosen_density = _densest(candidates)  # step 4
+        chosen[members] = True
+        result.chosen_size = int(chosen.sum())
+    return chosen, result
+
+
+def _uav_candidates(
+    points: np.ndarray,
+    frame_index: np.ndarray,
+    components: list[np.ndarray],
+    static_points: np.ndarray | None,
+    min_frames: int,
+    max_frame_extent_m: float,
+    density_voxel_m: float,
+    min_density: float,
+    contact_m: float,
+    max_contact_share: float,
+) -> list[tuple[np.ndarray, float]]:
+    """The components (indices into ``points``) that pass the UAV checks of :func:`extract_uav`, with their density.
+
+    A candidate is seen in ``min_frames`` scans, no scan spreads its returns wider than
+    ``max_frame_extent_m``, its density is at least ``min_density``, and (with a static map) at
+    most ``max_contact_share`` of its returns touch static returns.
+    """
+    candidates = []
+    for members in components:
         if np.unique(frame_index[members]).size < min_frames:
             continue
         if frame_extent(points[members], frame_index[members]) > max_frame_extent_m:
@@ -285,12 +310,14 @@ def extract_uav(
             continue
         if static_points is not None and static_contact(points[members], static_points, contact_m) > max_contact_share:
             continue
-        result.n_candidates += 1
+        candidates.append((members, density))
+    return candidates
+
+
+def _densest(candidates: list[tuple[np.ndarray, float]]) -> tuple[np.ndarray, float]:
+    """The paper's UAV choice: the candidate of highest density (the first one on a tie)."""
+    best, best_density = candidates[0][0], -np.inf
+    for members, density in candidates:
         if density > best_density:
-            best, best_density = int(c), density
-    if best < 0:
-        return chosen, result
-    chosen[dyn_index[component == best]] = True
-    result.chosen_size = int(chosen.sum())
-    result.chosen_density = float(best_density)
-    return chosen, result
+            best, best_density = members, density
+    return best, float(best_density)
