@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.helpers.real_data import shared_data_dir
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -16,11 +15,6 @@ def private_cache(tmp_path_factory):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("AAUTE_CACHE", str(tmp_path_factory.mktemp("aaute_cache")))
         yield
-
-
-def shared_data_dir() -> Path:
-    """Where the real MMAUD samples live: ``$AAUTE_SHARED_DATA`` or ``<repo>/../shared/data``."""
-    return Path(os.environ.get("AAUTE_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
 @pytest.fixture(scope="session")

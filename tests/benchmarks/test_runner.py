@@ -10,6 +10,7 @@ import yaml
 from benchmarks.results import read_results
 from benchmarks.runner import finished_jobs, run_suite
 from benchmarks.suite import SuiteError, check_job_args, expand_jobs, load_suite
+from tests.helpers.layouts import make_derived
 
 REPO = Path(__file__).resolve().parents[2]
 #: the paper suite expands to dozens of jobs whose LightningCLI arguments are each parsed: slow
@@ -114,9 +115,7 @@ def test_the_demo_suite_covers_the_comparison():
 
 def test_the_mmaud_v1_suite_runs_on_a_derived_npy_copy(tmp_path, monkeypatch):
     """The real-data suite on a small fixture of the derived per-sample layout (two 8 s flights)."""
-    from tests.datamodules.test_format_derived_npy import make_derived
-
-    monkeypatch.setattr("tests.datamodules.test_format_derived_npy.CHUNK", 4608)  # 0.1 s per file at 46080 Hz
+    monkeypatch.setattr("tests.helpers.layouts.CHUNK", 4608)  # 0.1 s per file at 46080 Hz
     root = tmp_path / "Data-M"
     make_derived(root, {"0": 80, "3": 80}, images=False)
     suite = load_suite(REPO / "configs" / "benchmark" / "mmaud_v1.yaml",

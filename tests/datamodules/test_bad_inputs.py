@@ -346,7 +346,7 @@ def test_ctrl_c_stops_simulate_at_once_and_a_rerun_resumes(tmp_path):
 
 def test_convert_refuses_to_drop_lidar_topics_it_cannot_place(tmp_path, capsys, caplog):
     pytest.importorskip("rosbags")
-    from tests.datamodules.test_format_rosbag1 import write_flight
+    from tests.helpers.bags import write_flight
 
     flight = tmp_path / "flight"
     write_flight(flight, mid360_topic="/points_raw")  # a PointCloud2 topic whose name names no sensor
@@ -371,7 +371,7 @@ def test_convert_refuses_to_drop_lidar_topics_it_cannot_place(tmp_path, capsys, 
 ])
 def test_a_wrong_channel_count_for_a_bag_is_named_as_such(given, words, tmp_path, capsys):
     pytest.importorskip("rosbags")
-    from tests.datamodules.test_format_rosbag1 import write_flight
+    from tests.helpers.bags import write_flight
 
     flight = tmp_path / "flight"
     write_flight(flight, audio="plain", info=False, lidar=False, gt=False)  # 4 channels, S16LE, no AudioInfo

@@ -12,9 +12,7 @@ from datamodules.convert import convert, mcap_name
 from datamodules.formats import discover_recordings, open_recording
 from datamodules.formats.mcap_file import read_mcap, write_mcap
 from datamodules.recording import RecordingError
-from tests.datamodules.test_format_derived_npy import make_derived
-from tests.datamodules.test_format_ug2 import make_ug2_sequence
-from tests.datamodules.test_mcap_format import make_recording
+from tests.helpers.layouts import make_derived, make_recording, make_ug2_sequence
 
 
 @pytest.fixture()
@@ -97,7 +95,7 @@ def test_cli_convert(mixed, tmp_path):
 
 def test_bag_folder_converts(tmp_path):
     pytest.importorskip("rosbags.rosbag1", reason="the optional 'rosbags' package is not installed")
-    from tests.datamodules.test_format_rosbag1 import write_flight
+    from tests.helpers.bags import write_flight
 
     write_flight(tmp_path / "bags" / "flight_7", lidar=False)
     (path,) = convert(tmp_path / "bags", tmp_path / "out")

@@ -2,50 +2,17 @@
 
 from __future__ import annotations
 
-import io
 import logging
 from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from datamodules.cli import main
 from datamodules.formats import derived_npy, discover_recordings, open_recording
 from datamodules.formats.mcap_file import read_mcap, write_mcap
 from datamodules.recording import RecordingError
-
-CHUNK = 480  # samples per file (TAME files hold 3100; small here to keep the test fast)
-
-
-def _png() -> bytes:
-    buffer = io.BytesIO()
-    Image.fromarray(np.full((6, 10, 3), 50, np.uint8)).save(buffer, "PNG")
-    return buffer.getvalue()
-
-
-def make_derived(root: Path, sequences: dict[str, int], seed: int = 0, first: int = 0,
-                 images: bool = True) -> dict[str, dict[str, np.ndarray]]:
-    """An AAUTE/TAME-style root: int16 audio chunks, gt, pseudo_label, label (class), image, Detection_new."""
-    rng = np.random.default_rng(seed)
-    truth: dict[str, dict[str, np.ndarray]] = {}
-    for seq, count in sequences.items():
-        audio = rng.integers(-3000, 3000, (count * CHUNK, 4)).astype(np.int16)
-        gt = rng.normal(0, 4, (count, 3))
-        pseudo = gt + rng.normal(0, 0.3, (count, 3))
-        for folder in ("audio_npy", "gt", "pseudo_label", "label", "image", "Detection_new"):
-            (root / folder / seq).mkdir(parents=True, exist_ok=True)
-        for k in range(count):
-            idx = first + k
-            np.save(root / "audio_npy" / seq / f"{idx}.npy", audio[k * CHUNK:(k + 1) * CHUNK])
-            np.save(root / "gt" / seq / f"{idx}.npy", gt[k])
-            np.save(root / "pseudo_label" / seq / f"{idx}.npy", pseudo[k])
-            np.save(root / "label" / seq / f"{idx}.npy", np.array(4))
-            np.save(root / "Detection_new" / seq / f"{idx}.npy", np.array([k % 2, 0.0]))
-            if images:
-                (root / "image" / seq / f"{idx}.png").write_bytes(_png())
-        truth[seq] = {"audio": audio, "gt": gt, "pseudo": pseudo}
-    return truth
+from tests.helpers.layouts import CHUNK, make_derived
 
 
 @pytest.fixture()

@@ -2,17 +2,16 @@
 
 from __future__ import annotations
 
-import io
 import logging
 from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 
 from datamodules.formats import discover_recordings, open_recording, ug2
 from datamodules.formats.mcap_file import write_mcap
 from datamodules.recording import RecordingError
+from tests.helpers.layouts import make_ug2_sequence
 
 REAL = "mmaud_ug2_val_seq1"
 
@@ -113,38 +112,6 @@ def test_frames_are_read_on_access(real_seq, monkeypatch):
 
 
 # ====================================================================================== synthetic train
-
-
-def _png(width: int = 8) -> bytes:
-    buffer = io.BytesIO()
-    Image.fromarray(np.full((4, width, 3), 100, np.uint8)).save(buffer, "PNG")
-    return buffer.getvalue()
-
-
-def make_ug2_sequence(folder: Path, frames: int = 12, class_id: int | None = 2, t0: float = 1706255621.6,
-                      skip: tuple[int, ...] = (), seed: int = 0) -> dict:
-    """A small UG2 sequence folder: padded scans, images, ground truth and class files."""
-    rng = np.random.default_rng(seed)
-    written: dict = {"mid360": [], "avia": [], "gt": []}
-    for name in ("lidar_360", "livox_avia", "Image", "ground_truth", "class"):
-        (folder / name).mkdir(parents=True)
-    for k in range(frames):
-        if k in skip:
-            continue
-        t = t0 + 0.1 * k
-        for sensor, name, offset, rows in (("mid360", "lidar_360", 0.0, 50), ("avia", "livox_avia", 0.014, 60)):
-            real = rng.normal(0, 3, (int(rng.integers(0, 20)), 3))
-            padded = np.zeros((rows, 3))
-            padded[: len(real)] = real
-            np.save(folder / name / f"{t + offset:.6f}.npy", padded)
-            written[sensor].append(real.astype(np.float32))
-        (folder / "Image" / f"{t + 0.03:.6f}.png").write_bytes(_png())
-        gt = rng.normal(0, 5, 3)
-        np.save(folder / "ground_truth" / f"{t:.6f}.npy", gt)
-        written["gt"].append(gt)
-        if class_id is not None:
-            np.save(folder / "class" / f"{t:.6f}.npy", np.array([class_id]))
-    return written
 
 
 def test_train_sequence_with_ground_truth_class_and_images(tmp_path):

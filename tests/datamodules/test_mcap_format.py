@@ -2,58 +2,15 @@
 
 from __future__ import annotations
 
-import io
-
 import numpy as np
 import pytest
 from mcap.writer import Writer as RawWriter
-from PIL import Image
 
 from datamodules.formats import open_recording
 from datamodules.formats.mcap_file import McapIndex, write_mcap
-from datamodules.recording import (
-    ArrayAudio,
-    ArrayImages,
-    ArrayPointClouds,
-    EncodedImage,
-    PointCloud,
-    Recording,
-    RecordingError,
-    Track,
-)
-from tests.recording_checks import assert_same_recording
-
-T0 = 1692845357.123456
-
-
-def _png(rng: np.random.Generator) -> EncodedImage:
-    buffer = io.BytesIO()
-    Image.fromarray(rng.integers(0, 255, (36, 64, 3), dtype=np.uint8)).save(buffer, "PNG")
-    return EncodedImage(buffer.getvalue(), "png")
-
-
-def make_recording(seconds: float = 3.0, seed: int = 0, sample_format: str = "S16LE") -> Recording:
-    rng = np.random.default_rng(seed)
-    fs = 48000
-    samples = rng.normal(0, 0.02, (4, int(seconds * fs)))
-    if sample_format == "S16LE":
-        samples = np.rint(samples * 32768) / 32768
-    audio = ArrayAudio(samples.astype(np.float32), fs, T0, rng.uniform(-2, 2, (4, 3)), sample_format)
-    times = T0 + 0.05 + np.arange(int(seconds * 10)) * 0.1
-    clouds = [PointCloud(rng.normal(0, 5, (n, 3)).astype(np.float32), rng.uniform(0, 255, n).astype(np.float32),
-                         rng.integers(0, 3, n).astype(np.uint8)) for n in rng.integers(0, 500, times.size)]
-    valid = rng.random(times.size) > 0.3
-    return Recording(
-        sequence_id="test-seq",
-        drone="phantom4",
-        audio=audio,
-        lidar={"mid360": ArrayPointClouds(times, clouds), "avia": ArrayPointClouds(times + 0.014, clouds[::-1])},
-        frames=ArrayImages(times + 0.03, [_png(rng) for _ in times]),
-        ground_truth=Track(times, rng.normal(0, 5, (times.size, 3))),
-        pseudo_labels=Track(times, rng.normal(0, 5, (times.size, 3)), valid=valid,
-                            quality={"support": rng.integers(0, 99, times.size).astype(float)}),
-        meta={"scene": "rooftop", "nested": {"a": [1, 2, 3]}},
-    )
+from datamodules.recording import ArrayPointClouds, RecordingError, Track
+from tests.helpers.layouts import RECORDING_T0, make_recording
+from tests.helpers.recording_checks import assert_same_recording
 
 
 @pytest.mark.parametrize("sample_format", ["S16LE", "F32LE"])
@@ -80,7 +37,7 @@ def test_window_read_touches_only_its_chunks(tmp_path, monkeypatch):
         return original(self, chunk_id)
 
     monkeypatch.setattr(McapIndex, "_chunk_messages", counting)
-    t_end = T0 + 31.0
+    t_end = RECORDING_T0 + 31.0
     window = read.audio.window(t_end, 2.0)
     assert np.array_equal(window, recording.audio.window(t_end, 2.0))
     assert len(set(opened)) <= 4

@@ -9,6 +9,8 @@ import torch
 from datamodules.formats import open_recording
 from datamodules.mmaud import MMAUDDataModule
 from datamodules.recording import Recording, RecordingError, Track
+from tests.helpers.layouts import CHUNK, make_derived, make_ug2_sequence
+from tests.helpers.real_data import shared_data_dir
 
 
 def _module(root, tmp_path, stage: str = "fit", **kwargs) -> MMAUDDataModule:
@@ -128,8 +130,6 @@ def test_datamodule_from_yaml(simulated_dir, tmp_path):
 
 
 def test_derived_layout_with_list_file_splits_and_reader_options(tmp_path):
-    from tests.datamodules.test_format_derived_npy import CHUNK, make_derived
-
     root = tmp_path / "Data-M"
     truth = make_derived(root, {"0": 30, "3": 25, "7": 25}, images=False)
     lists = root / "annotation"
@@ -158,9 +158,6 @@ def test_derived_layout_with_list_file_splits_and_reader_options(tmp_path):
 
 
 def test_ug2_folders_feed_an_image_model_and_refuse_an_audio_one(tmp_path):
-    from tests.conftest import shared_data_dir
-    from tests.datamodules.test_format_ug2 import make_ug2_sequence
-
     for k in range(3):
         make_ug2_sequence(tmp_path / "ug2" / "train" / f"seq{k}", frames=12, seed=k)
     module = _module(tmp_path / "ug2" / "train", tmp_path, inputs={"image": "resnet256"}, targets="ground_truth",

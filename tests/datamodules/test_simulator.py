@@ -11,7 +11,7 @@ from datamodules.formats.mcap_file import write_mcap
 from datamodules.recording import ORIGIN_DRONE, ORIGIN_FALSE
 from datamodules.simulate.drones import drone_spec
 from datamodules.simulate.simulator import SimulationConfig, simulate_recording
-from tests.recording_checks import assert_same_recording
+from tests.helpers.recording_checks import assert_same_recording
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import pytest
 import torch
 from torch.nn import functional as F
 
-from tests.zoo import original_layouts as originals
+from tests.helpers import original_layouts as originals
 from zoo.cli import main
 from zoo.cli.weights import FORMATS as CLI_FORMATS
 from zoo.registry import get_model

@@ -12,8 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.datamodules.test_format_derived_npy import make_derived
-from tests.datamodules.test_format_ug2 import make_ug2_sequence
+from tests.helpers.layouts import make_derived, make_ug2_sequence
 from zoo.cli import main
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
