@@ -57,7 +57,7 @@ def _median_ms(values: list[float]) -> float:
 def stage_times(model, audio: np.ndarray, rate: float) -> dict[str, float]:
     """Median ms per update of each stage alone, over the windows of ``audio`` (channels x samples)."""
     from datamodules.features import mel_features
-    from zoo.robust_smoothing import OnlineSmoother
+    from zoo.smoothing import OnlineSmoother
     from zoo.tracking import HOP_SECONDS, IncrementalMel
 
     block, window = int(round(HOP_SECONDS * rate)), int(round(model.window_seconds * rate))

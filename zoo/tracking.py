@@ -56,8 +56,7 @@ from datamodules.audio_export import PCM_FORMATS
 from datamodules.errors import AauteError, ConfigError
 from datamodules.features import MEL_RECIPES, MelRecipe, frame_power_mel, mel_frame_layout, mel_map, mel_recipe
 from datamodules.formats.ros_messages import full_scale
-from zoo.robust_smoothing import OnlineRow, OnlineSmoother
-from zoo.smoothing import SMOOTHED_COLUMNS
+from zoo.smoothing import SMOOTHED_COLUMNS, OnlineRow, OnlineSmoother
 
 log = logging.getLogger(__name__)
 

@@ -58,7 +58,7 @@ def offline_track(recording_path, student_weights, feature_cache):
     """The predict path on the recording's label times (DataModule windows, TrajectoryTask.predict_step),
     then the causal smoother over the whole track."""
     from datamodules.mmaud import MMAUDDataModule
-    from zoo.robust_smoothing import smooth_online
+    from zoo.smoothing import smooth_online
     from zoo.weights import load_task
 
     task = load_task(student_weights)
@@ -360,7 +360,7 @@ def test_interrupt_ends_the_run_cleanly(recording_path, student_weights):
 
 
 def test_csv_lines_are_flushed_one_by_one():
-    from zoo.robust_smoothing import OnlineRow
+    from zoo.smoothing import OnlineRow
     from zoo.tracking import CsvWriter
 
     class Counting(io.StringIO):
