@@ -62,7 +62,15 @@ import numpy as np
 import torch
 
 from zoo.smoothing.matern import matern52_model
-from zoo.smoothing.track import DTYPE, SmoothedTrack, distance_to_nearest, per_axis, prepare, torch_threads
+from zoo.smoothing.track import (
+    DTYPE,
+    SmoothedTrack,
+    distance_to_nearest,
+    merge_queries,
+    per_axis,
+    prepare,
+    torch_threads,
+)
 
 log = logging.getLogger(__name__)
 
@@ -260,13 +268,7 @@ def statespace_posterior(
         times, observed, obs_index = t, np.ones(t.shape[0], dtype=bool), np.arange(t.shape[0])
         query_pos = np.arange(t.shape[0])
     else:
-        times_all = np.concatenate([t, tq])
-        order = np.argsort(times_all, kind="stable")
-        times = times_all[order]
-        observed = order < t.shape[0]
-        obs_index = order
-        query_pos = np.empty(tq.shape[0], dtype=np.int64)
-        query_pos[order[~observed] - t.shape[0]] = np.flatnonzero(~observed)
+        times, observed, obs_index, query_pos = merge_queries(t, tq)
     n = times.shape[0]
     A, Q, P = matern52_model(np.diff(times, prepend=times[0]), lengthscale[heads], outputscale[heads])
     r = noise[heads]

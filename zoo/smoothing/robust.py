@@ -41,7 +41,15 @@ from scipy.special import digamma, gammaln
 
 from zoo.smoothing.gp import PRESETS
 from zoo.smoothing.kalman import Batch, blocked_posterior, blocked_prior, scan_posterior
-from zoo.smoothing.track import DTYPE, SmoothedTrack, distance_to_nearest, per_axis, prepare, torch_threads
+from zoo.smoothing.track import (
+    DTYPE,
+    SmoothedTrack,
+    distance_to_nearest,
+    merge_queries,
+    per_axis,
+    prepare,
+    torch_threads,
+)
 
 log = logging.getLogger(__name__)
 
@@ -422,15 +430,9 @@ class RobustSmoother:
                 where = np.empty(len(ts), dtype=np.int64)
                 where[order] = np.arange(len(ts))
             else:
-                tq = query - origin
-                times_all = np.concatenate([ts, tq])
-                merge = np.argsort(times_all, kind="stable")
-                times = times_all[merge]
-                observed = merge < len(ts)
-                data = np.zeros((len(times), 3))
-                data[observed] = (ys - centre)[merge[observed]]
-                where = np.empty(len(tq), dtype=np.int64)
-                where[merge[~observed] - len(ts)] = np.flatnonzero(~observed)
+                merged = merge_queries(ts, query - origin)
+                times, observed, data = merged.times, merged.observed, merged.scatter(ys - centre)
+                where = merged.query_steps
             start = np.zeros(len(times), dtype=bool)
             start[0] = True
             fit = infer(Batch(times, data, observed, start), hp, max_iterations=self.max_iterations)

@@ -12,7 +12,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import numpy as np
 import pandas as pd
@@ -140,6 +140,42 @@ def distance_to_nearest(sorted_t: np.ndarray, q: np.ndarray) -> np.ndarray:
     right = np.clip(np.searchsorted(sorted_t, q), 0, len(sorted_t) - 1)
     left = np.clip(right - 1, 0, len(sorted_t) - 1)
     return np.minimum(np.abs(sorted_t[right] - q), np.abs(q - sorted_t[left]))
+
+
+class MergedTimes(NamedTuple):
+    """Observation times and query times on one sorted axis; see :func:`merge_queries`.
+
+    Attributes:
+        times: (N + M,) the merged times, sorted (an observation before a query at the same time).
+        observed: (N + M,) True at the steps that are observations.
+        source: (N + M,) the index of each step in ``concatenate([t, tq])``: the observation's index
+            where ``observed``.
+        query_steps: (M,) the step of each query, in the order the queries were given.
+    """
+
+    times: np.ndarray
+    observed: np.ndarray
+    source: np.ndarray
+    query_steps: np.ndarray
+
+    def scatter(self, y: np.ndarray) -> np.ndarray:
+        """Observations (N, D) laid on the merged steps: (N + M, D), zero at the queries."""
+        data = np.zeros((self.times.shape[0], y.shape[1]))
+        data[self.observed] = y[self.source[self.observed]]
+        return data
+
+
+def merge_queries(t: np.ndarray, tq: np.ndarray) -> MergedTimes:
+    """Merge query times ``tq`` (M,) into sorted observation times ``t`` (N,) as steps without data.
+
+    A state-space smoother runs over the merged axis and reads its answers at ``query_steps``.
+    """
+    times_all = np.concatenate([t, tq])
+    order = np.argsort(times_all, kind="stable")
+    observed = order < t.shape[0]
+    query_steps = np.empty(tq.shape[0], dtype=np.int64)
+    query_steps[order[~observed] - t.shape[0]] = np.flatnonzero(~observed)
+    return MergedTimes(times_all[order], observed, order, query_steps)
 
 
 # ------------------------------------------------------------------------------------------- track files
