@@ -36,7 +36,7 @@ Backends (``backend=``):
 
 * ``exact``: dense Cholesky, O(N^3) time, O(N^2) memory, any kernel.
 * ``statespace``: Kalman filter and Rauch-Tung-Striebel smoother of the 3-state SDE that *is* the
-  Matern-5/2 GP: O(N), equal to ``exact`` to 1e-8 m.
+  Matern-5/2 GP (the blocked engine of :mod:`zoo.smoothing.kalman`): O(N), equal to ``exact`` to 1e-8 m.
 * ``local`` (RBF): exact GPs on overlapping windows whose margins follow from the decay of the GP's
   equivalent kernel, keeping truncation errors near 1e-7 of the data scale (2e-7 m measured at 10k).
 
@@ -61,7 +61,7 @@ import gpytorch
 import numpy as np
 import torch
 
-from zoo.smoothing.matern import matern52_model
+from zoo.smoothing.kalman import Batch, blocked_posterior, blocked_prior
 from zoo.smoothing.track import (
     DTYPE,
     SmoothedTrack,
@@ -255,54 +255,23 @@ def statespace_posterior(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Exact Matern-5/2 posterior by Kalman filtering and RTS smoothing, O(N + M).
 
-    Queries that are not observation times are merged into the time axis as steps without an update.
-    Axes with identical hyperparameters share one covariance recursion.
+    The blocked engine of :mod:`zoo.smoothing.kalman` with the Gaussian noise of every observation (the
+    robust smoother's engine at unit weights). Queries that are not observation times are merged into
+    the time axis as steps without an update.
     """
     if hp.kernel != "matern52":
         raise ValueError(f"the statespace backend needs the matern52 kernel, not {hp.kernel!r}")
     lengthscale, outputscale, noise = hp.arrays()
-    groups = [[0, 1, 2]] if hp.shared else [[0], [1], [2]]
-    heads = [g[0] for g in groups]
-    same = tq.shape == t.shape and np.array_equal(tq, t)
-    if same:
-        times, observed, obs_index = t, np.ones(t.shape[0], dtype=bool), np.arange(t.shape[0])
-        query_pos = np.arange(t.shape[0])
+    if tq.shape == t.shape and np.array_equal(tq, t):
+        times, observed, data, steps = t, np.ones(t.shape[0], dtype=bool), y, np.arange(t.shape[0])
     else:
-        times, observed, obs_index, query_pos = merge_queries(t, tq)
-    n = times.shape[0]
-    A, Q, P = matern52_model(np.diff(times, prepend=times[0]), lengthscale[heads], outputscale[heads])
-    r = noise[heads]
-    B, C = len(groups), len(groups[0])
-    obs = np.zeros((n, B, C))
-    obs[observed] = y[obs_index[observed]][:, np.array(groups).T].transpose(0, 2, 1)
-
-    m = np.zeros((B, 3, C))
-    mp, Pp = np.empty((n, B, 3, C)), np.empty((n, B, 3, 3))
-    mf, Pf = np.empty((n, B, 3, C)), np.empty((n, B, 3, 3))
-    for k in range(n):
-        a = A[k]
-        m = a @ m
-        P = a @ P @ a.transpose(0, 2, 1) + Q[k]
-        mp[k], Pp[k] = m, P
-        if observed[k]:
-            gain = P[:, :, 0] / (P[:, 0, 0] + r)[:, None]
-            m = m + gain[:, :, None] * (obs[k] - m[:, 0, :])[:, None, :]
-            P = P - gain[:, :, None] * P[:, None, 0, :]
-            P = 0.5 * (P + P.transpose(0, 2, 1))
-        mf[k], Pf[k] = m, P
-    mean_out, var_out = np.empty((n, B, C)), np.empty((n, B))
-    ms, Ps = mf[-1], Pf[-1]
-    mean_out[-1], var_out[-1] = ms[:, 0, :], Ps[:, 0, 0]
-    for k in range(n - 2, -1, -1):
-        gain = np.linalg.solve(Pp[k + 1], A[k + 1] @ Pf[k]).transpose(0, 2, 1)
-        ms = mf[k] + gain @ (ms - mp[k + 1])
-        Ps = Pf[k] + gain @ (Ps - Pp[k + 1]) @ gain.transpose(0, 2, 1)
-        mean_out[k], var_out[k] = ms[:, 0, :], Ps[:, 0, 0]
-    mean, var = np.empty((tq.shape[0], 3)), np.empty((tq.shape[0], 3))
-    for b, axes in enumerate(groups):
-        mean[:, axes] = mean_out[query_pos, b, :]
-        var[:, axes] = var_out[query_pos, b][:, None]
-    return mean, np.maximum(var, 0.0)
+        merged = merge_queries(t, tq)
+        times, observed, data, steps = merged.times, merged.observed, merged.scatter(y), merged.query_steps
+    start = np.zeros(times.shape[0], dtype=bool)
+    start[0] = True
+    prior = blocked_prior(Batch(times, data, observed, start), lengthscale, outputscale)
+    mean, var, _ = blocked_posterior(prior, np.broadcast_to(noise, (times.shape[0], 3)))
+    return mean[steps], np.maximum(var[steps], 0.0)
 
 
 _POSTERIORS = {"exact": _exact_posterior, "statespace": statespace_posterior, "local": _local_posterior}

@@ -42,6 +42,7 @@ def track_with_outliers(n: int = 300, seed: int = 0, noise: float = 0.25):
 
 
 def test_gaussian_weights_reproduce_the_exact_matern_state_space_smoother_and_tracks_restart():
+    """The GP statespace backend (the blocked engine) equals the torch scans at unit weights, track by track."""
     rng = np.random.default_rng(1)
     n = 257  # odd, not a power of two: every branch of the scan
     t = np.cumsum(rng.uniform(0.05, 0.2, n))
@@ -50,7 +51,7 @@ def test_gaussian_weights_reproduce_the_exact_matern_state_space_smoother_and_tr
     mean, var = statespace_posterior(hp, t - t[0], y, t - t[0])
     robust = RobustHyperparameters(hp.lengthscale, hp.outputscale, hp.noise, dof=5.0)
     two = Batch(np.concatenate([t - t[0], t - t[0] + t[-1] + 3]), np.concatenate([y, y[::-1]]),
-                 np.ones(2 * n, dtype=bool), np.r_[True, np.zeros(n - 1, bool), True, np.zeros(n - 1, bool)])
+                np.ones(2 * n, dtype=bool), np.r_[True, np.zeros(n - 1, bool), True, np.zeros(n - 1, bool)])
     with torch.no_grad():
         m2, v2, _ = scan_posterior(two, np.ones(2 * n), *robust.arrays())
     np.testing.assert_allclose(m2[:n].numpy(), mean, atol=1e-9)
@@ -307,7 +308,7 @@ def test_agrees_with_gpytorch_student_t_variational_gp_on_a_short_track():
     hp = RobustHyperparameters(lengthscale, outputscale, noise, dof)
     batch = Batch(t, y[:, None], np.ones(n, bool), np.r_[True, np.zeros(n - 1, bool)])
     ours = infer(batch, hp, axes=(np.array([lengthscale]), np.array([outputscale]), np.array([noise])),
-                  max_iterations=200, tolerance=1e-8)
+                 max_iterations=200, tolerance=1e-8)
 
     torch.manual_seed(0)
     x = torch.as_tensor(t, dtype=torch.float64)[:, None]
