@@ -180,8 +180,8 @@ class RobustFit:
 
 
 def infer(batch: Batch, hp: RobustHyperparameters, weights: np.ndarray | None = None,
-           max_iterations: int = 30, tolerance: float = 1e-3,
-           axes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, engine: str = "blocked") -> RobustFit:
+          max_iterations: int = 30, tolerance: float = 1e-3,
+          axes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None, engine: str = "blocked") -> RobustFit:
     """Coordinate ascent on q(f) and q(w) with the hyperparameters fixed.
 
     ``axes`` (lengthscale, outputscale, noise arrays, one entry per column of ``batch.y``) replaces
