@@ -149,8 +149,7 @@ def _real_tracks(folder: Path) -> dict[str, tuple[np.ndarray, np.ndarray, np.nda
 
 def _smoothed(mode: str, t: np.ndarray, pred: np.ndarray, **online):
     """(mean, std, weights or None) of one smoother mode, uncalibrated; ``online``: OnlineSmoother options."""
-    from zoo.robust_smoothing import RobustSmoother, smooth_online
-    from zoo.smoothing import GPSmoother
+    from zoo.smoothing import GPSmoother, RobustSmoother, smooth_online
 
     if mode in ("paper", "tuned"):
         track = GPSmoother(mode).smooth(t, pred)
@@ -164,9 +163,9 @@ def _smoothed(mode: str, t: np.ndarray, pred: np.ndarray, **online):
 def accuracy(folder: Path, lags: tuple[float, ...] = LAGS, **online) -> str:
     """The Markdown table of E and coverage per mode (see the module docstring).
 
-    ``online``: :class:`zoo.robust_smoothing.OnlineSmoother` options of the lag modes (default: its own).
+    ``online``: :class:`zoo.smoothing.OnlineSmoother` options of the lag modes (default: its own).
     """
-    from zoo.robust_smoothing import ROBUST_PRESETS, calibration_factor, coverage
+    from zoo.smoothing import ROBUST_PRESETS, calibration_factor, coverage
 
     tracks = _real_tracks(folder)
     modes = ["raw", "paper", "tuned", "robust", *[f"lag={lag:g}" for lag in lags]]
@@ -221,7 +220,7 @@ def choose_online(folder: Path, windows: tuple[float, ...] = (0.0, 3.0, 5.0, 8.0
     over the lags, since one default serves every lag); the drone is then scored with it. The table
     says which setting each drone's four others picked and what the picks score pooled.
     """
-    from zoo.robust_smoothing import smooth_online
+    from zoo.smoothing import smooth_online
 
     tracks = _real_tracks(folder)
     settings = [(w, i) for w in windows for i in iterations]
@@ -265,7 +264,7 @@ def fit_preset(folder: Path, rounds: int = 40) -> str:
     """
     from dataclasses import replace
 
-    from zoo.robust_smoothing import ROBUST_PRESETS, calibration_factor, fit_robust_hyperparameters
+    from zoo.smoothing import ROBUST_PRESETS, calibration_factor, fit_robust_hyperparameters
 
     tracks = _real_tracks(folder)
     report = fit_robust_hyperparameters([(t, pred) for t, pred, _ in tracks.values()], ROBUST_PRESETS["robust"],
@@ -278,7 +277,7 @@ def fit_preset(folder: Path, rounds: int = 40) -> str:
         mode = "robust" if lag == float("inf") else f"lag={lag:g}"
         parts = []
         for t, pred, gt in tracks.values():
-            from zoo.robust_smoothing import RobustSmoother, smooth_online
+            from zoo.smoothing import RobustSmoother, smooth_online
 
             hp = replace(report.hyperparameters, std_scale=())
             track = (RobustSmoother(hp).smooth(t, pred) if mode == "robust"
@@ -292,11 +291,11 @@ def fit_preset(folder: Path, rounds: int = 40) -> str:
 def speed_robust(threads: int = 1, points: int = 36_000, **options) -> str:
     """Seconds to smooth a ``points`` track offline and ms per online update (median over 2,000 frames).
 
-    ``options``: :class:`zoo.robust_smoothing.OnlineSmoother` settings (default: its own).
+    ``options``: :class:`zoo.smoothing.OnlineSmoother` settings (default: its own).
     """
     import torch
 
-    from zoo.robust_smoothing import OnlineSmoother, RobustSmoother
+    from zoo.smoothing import OnlineSmoother, RobustSmoother
 
     torch.set_num_threads(threads)
     t, xyz = make_track(points)
@@ -342,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.accuracy or args.fit_preset or args.speed_robust or args.choose_online:
         import torch
 
-        from zoo.robust_smoothing import OnlineSmoother
+        from zoo.smoothing import OnlineSmoother
 
         torch.set_num_threads(args.threads)
         online = {k: v for k, v in (("window", args.window), ("iterations", args.iterations)) if v is not None}

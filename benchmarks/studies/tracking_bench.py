@@ -58,7 +58,7 @@ def stage_times(model, audio: np.ndarray, rate: float) -> dict[str, float]:
     """Median ms per update of each stage alone, over the windows of ``audio`` (channels x samples)."""
     from datamodules.features import IncrementalMel, mel_features
     from zoo.deploy.tracking import HOP_SECONDS
-    from zoo.robust_smoothing import OnlineSmoother
+    from zoo.smoothing import OnlineSmoother
 
     block, window = int(round(HOP_SECONDS * rate)), int(round(model.window_seconds * rate))
     front = IncrementalMel(model.recipe, rate, audio.shape[0], window)

@@ -52,7 +52,7 @@ def offline_track(recording_path, student_weights, feature_cache):
     """The predict path on the recording's label times (DataModule windows, TrajectoryTask.predict_step),
     then the causal smoother over the whole track."""
     from datamodules.mmaud import MMAUDDataModule
-    from zoo.robust_smoothing import smooth_online
+    from zoo.smoothing import smooth_online
     from zoo.weights import load_task
 
     task = load_task(student_weights)
@@ -328,7 +328,7 @@ def test_interrupt_ends_the_run_cleanly(recording_path, student_weights):
 
 def test_csv_lines_are_flushed_one_by_one():
     from zoo.deploy.tracking import CsvWriter
-    from zoo.robust_smoothing import OnlineRow
+    from zoo.smoothing import OnlineRow
 
     class Counting(io.StringIO):
         flushes = 0

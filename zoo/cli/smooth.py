@@ -18,8 +18,14 @@ def _cmd_smooth(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from zoo.robust_smoothing import ROBUST_PRESETS, fit_robust_hyperparameters, smooth_online
-    from zoo.smoothing import make_smoother, read_track_csv, write_smoothed_csv
+    from zoo.smoothing import (
+        ROBUST_PRESETS,
+        fit_robust_hyperparameters,
+        make_smoother,
+        read_track_csv,
+        smooth_online,
+        write_smoothed_csv,
+    )
 
     check_output(args.src, args.dst, args.overwrite)
     robust = args.preset in ROBUST_PRESETS

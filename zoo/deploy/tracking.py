@@ -4,14 +4,14 @@ The audio arrives in blocks of one hop (0.1 s) from an :class:`~datamodules.stre
 recording of any layout the project reads, played as fast as possible or at real time; a WAV file; raw
 PCM from a pipe). After each block, the window of ``window_seconds`` ending at the block's last sample
 goes through the model's mel recipe (:class:`~datamodules.features.IncrementalMel`, each STFT frame of
-the stream computed once), the net gives a position, and :class:`~zoo.robust_smoothing.OnlineSmoother`
+the stream computed once), the net gives a position, and :class:`~zoo.smoothing.OnlineSmoother`
 (causal at ``lag`` 0, fixed-lag otherwise) turns it into rows ``timestamp, x, y, z, std_x, std_y, std_z``
 that the writers flush one line at a time. ``batch`` > 1 runs the net on several ready windows at once
 (faster replays, later lines).
 
 Windows end exactly where the DataModule's do: a position at ``t0 + k * hop`` uses the samples
 ``[k * block - window, k * block)``, so the positions equal ``aaute predict`` on the recording's label
-times followed by :func:`~zoo.robust_smoothing.smooth_online` (tested).
+times followed by :func:`~zoo.smoothing.smooth_online` (tested).
 
 Bad input: a block holding NaN or infinite samples is skipped and reported, and no position is made
 from a window containing it (the recording readers refuse such audio themselves); a stream that stalls,
@@ -42,8 +42,7 @@ from torch import nn
 from datamodules.errors import AauteError, ConfigError
 from datamodules.features import MEL_RECIPES, IncrementalMel, MelRecipe, mel_recipe
 from datamodules.streams import AudioSource
-from zoo.robust_smoothing import OnlineRow, OnlineSmoother
-from zoo.smoothing import SMOOTHED_COLUMNS
+from zoo.smoothing import SMOOTHED_COLUMNS, OnlineRow, OnlineSmoother
 
 log = logging.getLogger(__name__)
 

@@ -402,10 +402,10 @@ def test_the_tuned_preset_is_the_pooled_marginal_likelihood_fit(tame):
 
 
 def test_kernel_hyperparameters_are_set_in_float64_without_a_float32_round_trip():
-    from zoo.smoothing import _axis_kernel
+    from zoo.smoothing.gp import axis_kernel
 
     hp = GPHyperparameters("matern52", (0.1, 8.2, 13.0), (0.3, 26.0, 23.0), (0.7, 0.69, 0.95))
-    kernel = _axis_kernel(hp, 0)
+    kernel = axis_kernel(hp, 0)
     assert kernel.base_kernel.lengthscale.dtype == torch.float64
     # float32 on the way would be off by 1.5e-8 relative (0.10000000149); softplus round trips cost an ulp
     assert kernel.base_kernel.lengthscale.item() == pytest.approx(0.1, rel=1e-14)

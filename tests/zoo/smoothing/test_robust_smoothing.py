@@ -6,22 +6,22 @@ import numpy as np
 import pytest
 import torch
 
-from zoo.robust_smoothing import (
+from zoo.smoothing import (
+    PRESETS,
     ROBUST_PRESETS,
+    GPSmoother,
     OnlineSmoother,
     RobustHyperparameters,
     RobustSmoother,
-    _Batch,
-    _blocked_posterior,
-    _blocked_prior,
-    _infer,
-    _posterior,
     calibration_factor,
     coverage,
     fit_robust_hyperparameters,
+    make_smoother,
     smooth_online,
 )
-from zoo.smoothing import PRESETS, GPSmoother, _statespace_posterior, make_smoother
+from zoo.smoothing.gp import statespace_posterior
+from zoo.smoothing.kalman import Batch, blocked_posterior, blocked_prior, scan_posterior
+from zoo.smoothing.robust import infer
 
 HP = RobustHyperparameters(lengthscale=(3.0, 4.0, 5.0), outputscale=(4.0, 9.0, 6.0), noise=(0.04, 0.09, 0.06), dof=3.0)
 
@@ -42,20 +42,21 @@ def track_with_outliers(n: int = 300, seed: int = 0, noise: float = 0.25):
 
 
 def test_gaussian_weights_reproduce_the_exact_matern_state_space_smoother_and_tracks_restart():
+    """The GP statespace backend (the blocked engine) equals the torch scans at unit weights, track by track."""
     rng = np.random.default_rng(1)
     n = 257  # odd, not a power of two: every branch of the scan
     t = np.cumsum(rng.uniform(0.05, 0.2, n))
     y = rng.normal(0, 1, (n, 3))
     hp = PRESETS["tuned"]
-    mean, var = _statespace_posterior(hp, t - t[0], y, t - t[0])
+    mean, var = statespace_posterior(hp, t - t[0], y, t - t[0])
     robust = RobustHyperparameters(hp.lengthscale, hp.outputscale, hp.noise, dof=5.0)
-    two = _Batch(np.concatenate([t - t[0], t - t[0] + t[-1] + 3]), np.concatenate([y, y[::-1]]),
-                 np.ones(2 * n, dtype=bool), np.r_[True, np.zeros(n - 1, bool), True, np.zeros(n - 1, bool)])
+    two = Batch(np.concatenate([t - t[0], t - t[0] + t[-1] + 3]), np.concatenate([y, y[::-1]]),
+                np.ones(2 * n, dtype=bool), np.r_[True, np.zeros(n - 1, bool), True, np.zeros(n - 1, bool)])
     with torch.no_grad():
-        m2, v2, _ = _posterior(two, robust, np.ones(2 * n))
+        m2, v2, _ = scan_posterior(two, np.ones(2 * n), *robust.arrays())
     np.testing.assert_allclose(m2[:n].numpy(), mean, atol=1e-9)
     np.testing.assert_allclose(v2[:n].numpy(), var, atol=1e-9)
-    mean_r, var_r = _statespace_posterior(hp, t - t[0], y[::-1], t - t[0])  # the second track alone
+    mean_r, var_r = statespace_posterior(hp, t - t[0], y[::-1], t - t[0])  # the second track alone
     np.testing.assert_allclose(m2[n:].numpy(), mean_r, atol=1e-9)
     np.testing.assert_allclose(v2[n:].numpy(), var_r, atol=1e-9)
 
@@ -69,35 +70,35 @@ def test_the_blocked_numpy_posterior_equals_the_torch_scans(blocks):
     t[40] = t[39]  # a step of length zero
     start = np.zeros(n, dtype=bool)
     start[[0, 170]] = True
-    batch = _Batch(t - t[0], rng.normal(0, 2, (n, 3)), rng.uniform(size=n) > 0.15, start)
+    batch = Batch(t - t[0], rng.normal(0, 2, (n, 3)), rng.uniform(size=n) > 0.15, start)
     w = rng.uniform(0.02, 1.5, n)
     with torch.no_grad():
-        mean, var, loglik = _posterior(batch, HP, w)
-    prior = _blocked_prior(batch, *HP.arrays()[:2], blocks=blocks)
+        mean, var, loglik = scan_posterior(batch, w, *HP.arrays())
+    prior = blocked_prior(batch, *HP.arrays()[:2], blocks=blocks)
     noise = HP.arrays()[2][None, :] / np.where(batch.observed, w, 1.0)[:, None]
-    mean_b, var_b, loglik_b = _blocked_posterior(prior, noise)
+    mean_b, var_b, loglik_b = blocked_posterior(prior, noise)
     np.testing.assert_allclose(mean_b, mean.numpy(), atol=1e-10)
     np.testing.assert_allclose(var_b, var.numpy(), atol=1e-12)
     assert loglik_b == pytest.approx(float(loglik), rel=1e-12)
     with torch.no_grad():
-        mf, Pf, _ = _posterior(batch, HP, w, smooth=False)
-    mf_b, Pf_b, _ = _blocked_posterior(prior, noise, smooth=False)
+        mf, Pf, _ = scan_posterior(batch, w, *HP.arrays(), smooth=False)
+    mf_b, Pf_b, _ = blocked_posterior(prior, noise, smooth=False)
     np.testing.assert_allclose(mf_b, mf.numpy(), atol=1e-10)
     np.testing.assert_allclose(Pf_b, Pf.numpy(), atol=1e-10)
 
 
 def test_variational_inference_gives_the_same_fit_with_either_engine():
     t, y, _, _ = track_with_outliers(400, seed=22)
-    batch = _Batch(t - t[0], y - y.mean(0), np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
-    blocked = _infer(batch, HP, engine="blocked")
-    scan = _infer(batch, HP, engine="scan")
+    batch = Batch(t - t[0], y - y.mean(0), np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
+    blocked = infer(batch, HP, engine="blocked")
+    scan = infer(batch, HP, engine="scan")
     assert blocked.iterations == scan.iterations
     np.testing.assert_allclose(blocked.mean, scan.mean, atol=1e-9)
     np.testing.assert_allclose(blocked.var, scan.var, atol=1e-12)
     np.testing.assert_allclose(blocked.weights, scan.weights, atol=1e-9)
     assert blocked.elbo == pytest.approx(scan.elbo, rel=1e-10)
     with pytest.raises(ValueError, match="engine"):
-        _infer(batch, HP, engine="nope")
+        infer(batch, HP, engine="nope")
 
 
 def test_robust_smoother_ignores_outliers_and_the_gaussian_one_does_not():
@@ -225,9 +226,9 @@ def test_the_window_solve_is_the_exact_posterior_given_the_weights():
         last_weight.update({frame[0]: w for frame, w in zip(online._frames, online._weights, strict=True)})
     used[t[-1]] = 1.0
     weights = np.array([used[v] for v in t])
-    batch = _Batch(t - t[0], y - y[0], np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
+    batch = Batch(t - t[0], y - y[0], np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
     noise = HP.arrays()[2][None, :] / weights[:, None]
-    mean, var, _ = _blocked_posterior(_blocked_prior(batch, *HP.arrays()[:2]), noise)
+    mean, var, _ = blocked_posterior(blocked_prior(batch, *HP.arrays()[:2]), noise)
     times, window_mean, window_var, _ = online._solution
     assert online._t is not None and len(times) < len(t)  # a committed state and a window after it
     window = np.searchsorted(t, times)
@@ -256,8 +257,8 @@ def test_fitted_degrees_of_freedom_separate_gaussian_from_heavy_tailed_noise():
 
 def test_the_bound_increases_over_variational_iterations():
     t, y, _, _ = track_with_outliers(150, seed=10)
-    batch = _Batch(t - t[0], y - y.mean(0), np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
-    bounds = [_infer(batch, HP, max_iterations=k, tolerance=0.0).elbo for k in (1, 2, 4, 8)]
+    batch = Batch(t - t[0], y - y.mean(0), np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
+    bounds = [infer(batch, HP, max_iterations=k, tolerance=0.0).elbo for k in (1, 2, 4, 8)]
     assert all(b2 >= b1 - 1e-6 for b1, b2 in zip(bounds, bounds[1:], strict=False))
 
 
@@ -305,9 +306,9 @@ def test_agrees_with_gpytorch_student_t_variational_gp_on_a_short_track():
     y[[15, 40]] += 6.0
     lengthscale, outputscale, noise, dof = 2.0, 4.0, 0.04, 4.0
     hp = RobustHyperparameters(lengthscale, outputscale, noise, dof)
-    batch = _Batch(t, y[:, None], np.ones(n, bool), np.r_[True, np.zeros(n - 1, bool)])
-    ours = _infer(batch, hp, axes=(np.array([lengthscale]), np.array([outputscale]), np.array([noise])),
-                  max_iterations=200, tolerance=1e-8)
+    batch = Batch(t, y[:, None], np.ones(n, bool), np.r_[True, np.zeros(n - 1, bool)])
+    ours = infer(batch, hp, axes=(np.array([lengthscale]), np.array([outputscale]), np.array([noise])),
+                 max_iterations=200, tolerance=1e-8)
 
     torch.manual_seed(0)
     x = torch.as_tensor(t, dtype=torch.float64)[:, None]
@@ -401,9 +402,9 @@ def test_the_blocked_engine_reproduces_the_scan_engine_on_a_real_track(shared_da
     if not path.is_file():
         pytest.skip(f"real MMAUD V1 / TAME track not found at {path}")
     t, y = read_track_csv(path)
-    batch = _Batch(t - t[0], y - y.mean(0), np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
+    batch = Batch(t - t[0], y - y.mean(0), np.ones(len(t), bool), np.r_[True, np.zeros(len(t) - 1, bool)])
     hp = ROBUST_PRESETS["robust"]
-    blocked, scan = _infer(batch, hp, engine="blocked"), _infer(batch, hp, engine="scan")
+    blocked, scan = infer(batch, hp, engine="blocked"), infer(batch, hp, engine="scan")
     assert blocked.iterations == scan.iterations == 30
     np.testing.assert_allclose(blocked.mean, scan.mean, atol=1e-6)
     np.testing.assert_allclose(np.sqrt(blocked.var), np.sqrt(scan.var), atol=1e-6)

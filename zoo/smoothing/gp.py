@@ -3,8 +3,8 @@
 The AAUTE paper smooths the student's 10 Hz position estimates with a GP on time: an RBF kernel with
 lengthscale 300, noise variance 2.0 and signal variance 1.0. :class:`GPSmoother` does this per axis
 (three independent GPs, batch-independent hyperparameters) and returns the posterior mean and the
-predictive standard deviation at any query times; :func:`smooth_track_file` does it for a CSV track
-and :func:`smooth_predictions` per sequence of a batch of predictions.
+predictive standard deviation at any query times; :func:`zoo.smoothing.smooth_track_file` does it for a
+CSV track and :func:`zoo.smoothing.smooth_predictions` per sequence of a batch of predictions.
 
 Conventions, decided here with measurements on the real MMAUD V1 tracks with TAME's audio predictions
 (``../shared/data/mmaud_v1_tame``, five drones; mean Euclidean error E of the raw predictions, averaged
@@ -36,7 +36,7 @@ Backends (``backend=``):
 
 * ``exact``: dense Cholesky, O(N^3) time, O(N^2) memory, any kernel.
 * ``statespace``: Kalman filter and Rauch-Tung-Striebel smoother of the 3-state SDE that *is* the
-  Matern-5/2 GP: O(N), equal to ``exact`` to 1e-8 m.
+  Matern-5/2 GP (the blocked engine of :mod:`zoo.smoothing.kalman`): O(N), equal to ``exact`` to 1e-8 m.
 * ``local`` (RBF): exact GPs on overlapping windows whose margins follow from the decay of the GP's
   equivalent kernel, keeping truncation errors near 1e-7 of the data scale (2e-7 m measured at 10k).
 
@@ -46,53 +46,44 @@ for fitting and the kernel matrices of the exact and local backends, but not the
 ExactGP prediction factorises twice and solves against the whole cross-covariance (4,000 points,
 3 axes, mean and variance: 19.9 s and +3.0 GB, against 3.1 s and +0.45 GB for ``exact`` here and
 0.6 s for ``local``), and its scalable path (SKI/KISS-GP with LOVE variances) gives grossly inflated
-variances on long tracks. ``python -m benchmarks.smoothing_bench`` measures all of this.
+variances on long tracks. ``python -m benchmarks.studies.smoothing_bench`` measures all of this.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Hashable, Iterable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Literal
 
 import gpytorch
 import numpy as np
-import pandas as pd
 import torch
 
-from datamodules.atomic import atomic_write
-from datamodules.recording import RecordingError
+from zoo.smoothing.kalman import Batch, blocked_posterior, blocked_prior
+from zoo.smoothing.track import (
+    DTYPE,
+    SmoothedTrack,
+    distance_to_nearest,
+    merge_queries,
+    per_axis,
+    prepare,
+    torch_threads,
+)
 
 log = logging.getLogger(__name__)
 
 KERNELS = ("rbf", "matern52")
 BACKENDS = ("auto", "exact", "statespace", "local")
-TRACK_COLUMNS = ("timestamp", "x", "y", "z")
-SMOOTHED_COLUMNS = (*TRACK_COLUMNS, "std_x", "std_y", "std_z")
 
 #: Seconds per unit of the paper's lengthscale "300" (see the module docstring).
 PAPER_TIME_UNIT = 0.01
 #: Relative truncation error aimed at by the ``local`` backend's window margins.
 LOCAL_TOLERANCE = 1e-7
-_DTYPE = torch.float64
-
-
-class TrackFileError(RecordingError):
-    """A track CSV file does not hold what :func:`smooth_track_file` expects."""
 
 
 # ------------------------------------------------------------------------------------ hyperparameters
-
-
-def _per_axis(value: float | Sequence[float], name: str) -> tuple[float, float, float]:
-    values = np.broadcast_to(np.asarray(value, dtype=np.float64), (3,))
-    if not np.all(np.isfinite(values)) or np.any(values <= 0):
-        raise ValueError(f"{name} must be positive and finite, one value or one per axis; got {value!r}")
-    return (float(values[0]), float(values[1]), float(values[2]))
 
 
 @dataclass(frozen=True)
@@ -115,7 +106,7 @@ class GPHyperparameters:
         if self.kernel not in KERNELS:
             raise ValueError(f"unknown kernel {self.kernel!r}; expected one of {KERNELS}")
         for name in ("lengthscale", "outputscale", "noise"):
-            object.__setattr__(self, name, _per_axis(getattr(self, name), name))
+            object.__setattr__(self, name, per_axis(getattr(self, name), name))
 
     @property
     def shared(self) -> bool:
@@ -149,68 +140,16 @@ def _make_kernel(kernel: str, batch: int) -> gpytorch.kernels.ScaleKernel:
         base = gpytorch.kernels.RBFKernel(batch_shape=shape)
     else:
         base = gpytorch.kernels.MaternKernel(nu=2.5, batch_shape=shape)
-    return gpytorch.kernels.ScaleKernel(base, batch_shape=shape).to(_DTYPE)
+    return gpytorch.kernels.ScaleKernel(base, batch_shape=shape).to(DTYPE)
 
 
-def _axis_kernel(hp: GPHyperparameters, axis: int) -> gpytorch.kernels.ScaleKernel:
+def axis_kernel(hp: GPHyperparameters, axis: int) -> gpytorch.kernels.ScaleKernel:
     """An unbatched GPyTorch kernel with the hyperparameters of ``axis``."""
     kernel = _make_kernel(hp.kernel, 1)
     # tensors in float64: GPyTorch's setters turn a Python float into a float32 tensor first
-    kernel.base_kernel.lengthscale = torch.tensor(hp.lengthscale[axis], dtype=_DTYPE)
-    kernel.outputscale = torch.tensor(hp.outputscale[axis], dtype=_DTYPE)
+    kernel.base_kernel.lengthscale = torch.tensor(hp.lengthscale[axis], dtype=DTYPE)
+    kernel.outputscale = torch.tensor(hp.outputscale[axis], dtype=DTYPE)
     return kernel
-
-
-@contextmanager
-def _torch_threads(num_threads: int | None) -> Iterator[None]:
-    """Run with ``num_threads`` intra-op threads, restoring the previous count afterwards."""
-    if num_threads is None:
-        yield
-        return
-    previous = torch.get_num_threads()
-    torch.set_num_threads(num_threads)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
-# ------------------------------------------------------------------------------------------ results
-
-
-@dataclass
-class SmoothedTrack:
-    """Smoothed positions at the query times, in the order the times were given.
-
-    Attributes:
-        timestamps: (M,) float64 query times, as given (absolute).
-        mean: (M, 3) posterior mean of x, y, z in metres.
-        std: (M, 3) predictive standard deviation of the smoothed position (without observation noise).
-        beyond_horizon: (M,) True where the nearest observation is farther than ``horizon`` seconds:
-            there the mean drifts back to the track mean and the std towards the prior std.
-        hyperparameters: what was used (the fitted values when fitting).
-        backend: the backend that ran (``exact``, ``statespace`` or ``local``).
-        horizon: the horizon in seconds that ``beyond_horizon`` refers to.
-        weights: (M,) robust weight E[w] of each observation (robust smoothers only; 1 is a typical
-            frame, near 0 an ignored outlier), or None.
-    """
-
-    timestamps: np.ndarray
-    mean: np.ndarray
-    std: np.ndarray
-    beyond_horizon: np.ndarray
-    hyperparameters: GPHyperparameters
-    backend: str
-    horizon: float
-    weights: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return int(self.timestamps.shape[0])
-
-    @property
-    def variance(self) -> np.ndarray:
-        """(M, 3) predictive variance, m^2."""
-        return self.std**2
 
 
 # ------------------------------------------------------------------------------------------ backends
@@ -232,11 +171,11 @@ def _exact_posterior(
     if t.shape[0] == 0:
         var[:] = outputscale
         return mean, var
-    x = torch.as_tensor(t, dtype=_DTYPE)[:, None]
-    xq = torch.as_tensor(tq, dtype=_DTYPE)[:, None]
+    x = torch.as_tensor(t, dtype=DTYPE)[:, None]
+    xq = torch.as_tensor(tq, dtype=DTYPE)[:, None]
     with torch.no_grad():
         for axes in groups:
-            kernel = _axis_kernel(hp, axes[0])
+            kernel = axis_kernel(hp, axes[0])
             K = kernel(x).to_dense()
             K.diagonal().add_(float(noise[axes[0]]))
             L, info = torch.linalg.cholesky_ex(K)
@@ -246,7 +185,7 @@ def _exact_posterior(
             del K
             # mean = (L^-1 k*)^T (L^-1 y): the data ride along with the first chunk's triangular solve
             # (a one-column solve on its own stalled for 0.7 s on 2 busy cores)
-            targets = torch.as_tensor(y[:, axes], dtype=_DTYPE)
+            targets = torch.as_tensor(y[:, axes], dtype=DTYPE)
             whitened = None
             for start in range(0, tq.shape[0], chunk):
                 cross_t = kernel(xq[start:start + chunk], x).to_dense().T
@@ -311,106 +250,31 @@ def _local_posterior(
     return mean, var
 
 
-def _matern52_model(
-    dt: np.ndarray, lengthscale: np.ndarray, outputscale: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Transition matrices A (n, B, 3, 3), process noises Q and stationary covariance P (B, 3, 3).
-
-    The Matern-5/2 GP is the first component of the state (f, f', f'') of the SDE ds = F s dt + L dW
-    with F's characteristic polynomial (x + lam)^3, lam = sqrt(5) / lengthscale. Since F + lam I is
-    nilpotent, exp(F dt) = exp(-lam dt) (I + N dt + N^2 dt^2 / 2) in closed form, and
-    Q = P - A P A^T for the stationary covariance P.
-    """
-    lam, nil, nil2 = _matern52_nilpotent(lengthscale)
-    stationary = np.zeros((lam.shape[0], 3, 3))
-    stationary[:, 0, 0] = 1.0
-    stationary[:, 1, 1] = lam**2 / 3.0
-    stationary[:, 0, 2] = stationary[:, 2, 0] = -(lam**2) / 3.0
-    stationary[:, 2, 2] = lam**4
-    stationary *= outputscale[:, None, None]
-    A = _matern52_transition(dt, lam, nil, nil2)
-    Q = stationary - A @ stationary @ np.swapaxes(A, -1, -2)
-    return A, Q, stationary
-
-
-def _matern52_nilpotent(lengthscale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """lam = sqrt(5) / lengthscale (B,), the nilpotent N = F + lam I (B, 3, 3) of the SDE and N^2."""
-    lam = np.sqrt(5.0) / lengthscale
-    nil = np.zeros((lam.shape[0], 3, 3))
-    nil[:, 0, 0] = nil[:, 1, 1] = lam
-    nil[:, 0, 1] = nil[:, 1, 2] = 1.0
-    nil[:, 2, 0], nil[:, 2, 1], nil[:, 2, 2] = -(lam**3), -3.0 * lam**2, -2.0 * lam
-    return lam, nil, nil @ nil
-
-
-def _matern52_transition(dt: np.ndarray, lam: np.ndarray, nil: np.ndarray, nil2: np.ndarray) -> np.ndarray:
-    """exp(F dt) = exp(-lam dt) (I + N dt + N^2 dt^2 / 2) per step and axis, (n, B, 3, 3)."""
-    d = dt[:, None, None, None]
-    return np.exp(-lam[None, :, None, None] * d) * (np.eye(3) + nil * d + nil2 * (d * d / 2.0))
-
-
-def _statespace_posterior(
+def statespace_posterior(
     hp: GPHyperparameters, t: np.ndarray, y: np.ndarray, tq: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Exact Matern-5/2 posterior by Kalman filtering and RTS smoothing, O(N + M).
 
-    Queries that are not observation times are merged into the time axis as steps without an update.
-    Axes with identical hyperparameters share one covariance recursion.
+    The blocked engine of :mod:`zoo.smoothing.kalman` with the Gaussian noise of every observation (the
+    robust smoother's engine at unit weights). Queries that are not observation times are merged into
+    the time axis as steps without an update.
     """
     if hp.kernel != "matern52":
         raise ValueError(f"the statespace backend needs the matern52 kernel, not {hp.kernel!r}")
     lengthscale, outputscale, noise = hp.arrays()
-    groups = [[0, 1, 2]] if hp.shared else [[0], [1], [2]]
-    heads = [g[0] for g in groups]
-    same = tq.shape == t.shape and np.array_equal(tq, t)
-    if same:
-        times, observed, obs_index = t, np.ones(t.shape[0], dtype=bool), np.arange(t.shape[0])
-        query_pos = np.arange(t.shape[0])
+    if tq.shape == t.shape and np.array_equal(tq, t):
+        times, observed, data, steps = t, np.ones(t.shape[0], dtype=bool), y, np.arange(t.shape[0])
     else:
-        times_all = np.concatenate([t, tq])
-        order = np.argsort(times_all, kind="stable")
-        times = times_all[order]
-        observed = order < t.shape[0]
-        obs_index = order
-        query_pos = np.empty(tq.shape[0], dtype=np.int64)
-        query_pos[order[~observed] - t.shape[0]] = np.flatnonzero(~observed)
-    n = times.shape[0]
-    A, Q, P = _matern52_model(np.diff(times, prepend=times[0]), lengthscale[heads], outputscale[heads])
-    r = noise[heads]
-    B, C = len(groups), len(groups[0])
-    obs = np.zeros((n, B, C))
-    obs[observed] = y[obs_index[observed]][:, np.array(groups).T].transpose(0, 2, 1)
-
-    m = np.zeros((B, 3, C))
-    mp, Pp = np.empty((n, B, 3, C)), np.empty((n, B, 3, 3))
-    mf, Pf = np.empty((n, B, 3, C)), np.empty((n, B, 3, 3))
-    for k in range(n):
-        a = A[k]
-        m = a @ m
-        P = a @ P @ a.transpose(0, 2, 1) + Q[k]
-        mp[k], Pp[k] = m, P
-        if observed[k]:
-            gain = P[:, :, 0] / (P[:, 0, 0] + r)[:, None]
-            m = m + gain[:, :, None] * (obs[k] - m[:, 0, :])[:, None, :]
-            P = P - gain[:, :, None] * P[:, None, 0, :]
-            P = 0.5 * (P + P.transpose(0, 2, 1))
-        mf[k], Pf[k] = m, P
-    mean_out, var_out = np.empty((n, B, C)), np.empty((n, B))
-    ms, Ps = mf[-1], Pf[-1]
-    mean_out[-1], var_out[-1] = ms[:, 0, :], Ps[:, 0, 0]
-    for k in range(n - 2, -1, -1):
-        gain = np.linalg.solve(Pp[k + 1], A[k + 1] @ Pf[k]).transpose(0, 2, 1)
-        ms = mf[k] + gain @ (ms - mp[k + 1])
-        Ps = Pf[k] + gain @ (Ps - Pp[k + 1]) @ gain.transpose(0, 2, 1)
-        mean_out[k], var_out[k] = ms[:, 0, :], Ps[:, 0, 0]
-    mean, var = np.empty((tq.shape[0], 3)), np.empty((tq.shape[0], 3))
-    for b, axes in enumerate(groups):
-        mean[:, axes] = mean_out[query_pos, b, :]
-        var[:, axes] = var_out[query_pos, b][:, None]
-    return mean, np.maximum(var, 0.0)
+        merged = merge_queries(t, tq)
+        times, observed, data, steps = merged.times, merged.observed, merged.scatter(y), merged.query_steps
+    start = np.zeros(times.shape[0], dtype=bool)
+    start[0] = True
+    prior = blocked_prior(Batch(times, data, observed, start), lengthscale, outputscale)
+    mean, var, _ = blocked_posterior(prior, np.broadcast_to(noise, (times.shape[0], 3)))
+    return mean[steps], np.maximum(var[steps], 0.0)
 
 
-_POSTERIORS = {"exact": _exact_posterior, "statespace": _statespace_posterior, "local": _local_posterior}
+_POSTERIORS = {"exact": _exact_posterior, "statespace": statespace_posterior, "local": _local_posterior}
 
 
 # ------------------------------------------------------------------------------------------- fitting
@@ -427,7 +291,7 @@ def _fit_blocks(
     blocks: list[tuple[np.ndarray, np.ndarray]] = []
     sum_sq, count = np.zeros(3), 0
     for timestamps, xyz in tracks:
-        t, y = _prepare(timestamps, xyz)
+        t, y = prepare(timestamps, xyz)
         order = np.argsort(t, kind="stable")
         t, y = t[order] - t[order[0]], y[order] - y.mean(axis=0)
         sum_sq += (y**2).sum(axis=0)
@@ -442,8 +306,8 @@ def _fit_blocks(
     groups = []
     for n in sorted({len(b[0]) for b in blocks}):
         same = [b for b in blocks if len(b[0]) == n]
-        x = torch.as_tensor(np.stack([b[0] for b in same]), dtype=_DTYPE)[:, None, :, None]
-        groups.append((x, torch.as_tensor(np.stack([b[1] for b in same]), dtype=_DTYPE)))
+        x = torch.as_tensor(np.stack([b[0] for b in same]), dtype=DTYPE)[:, None, :, None]
+        groups.append((x, torch.as_tensor(np.stack([b[1] for b in same]), dtype=DTYPE)))
     used = sum(int(x.shape[0] * x.shape[2]) for x, _ in groups)
     return groups, np.maximum(sum_sq / count, 1e-6), used
 
@@ -454,7 +318,7 @@ def _block_log_likelihood(
     likelihood: gpytorch.likelihoods.GaussianLikelihood,
 ) -> torch.Tensor:
     """Sum over blocks and axes of the exact GP marginal log-likelihood (GPyTorch, batched)."""
-    total = torch.zeros((), dtype=_DTYPE)
+    total = torch.zeros((), dtype=DTYPE)
     for x, targets in groups:
         prior = gpytorch.distributions.MultivariateNormal(torch.zeros_like(targets), kernel(x))
         total = total + likelihood(prior).log_prob(targets).sum()
@@ -488,10 +352,10 @@ def fit_hyperparameters(
     kernel = kernel or start.kernel
     groups, axis_var, total = _fit_blocks(tracks, block_points, max_points)
     kernel_module = _make_kernel(kernel, 3)
-    likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=torch.Size([3])).to(_DTYPE)
-    kernel_module.base_kernel.lengthscale = torch.tensor(start.lengthscale, dtype=_DTYPE).reshape(3, 1, 1)
-    kernel_module.outputscale = torch.tensor(axis_var, dtype=_DTYPE)
-    likelihood.noise = torch.tensor(np.minimum(start.noise, 0.5 * axis_var), dtype=_DTYPE).reshape(3, 1)
+    likelihood = gpytorch.likelihoods.GaussianLikelihood(batch_shape=torch.Size([3])).to(DTYPE)
+    kernel_module.base_kernel.lengthscale = torch.tensor(start.lengthscale, dtype=DTYPE).reshape(3, 1, 1)
+    kernel_module.outputscale = torch.tensor(axis_var, dtype=DTYPE)
+    likelihood.noise = torch.tensor(np.minimum(start.noise, 0.5 * axis_var), dtype=DTYPE).reshape(3, 1)
     params = [*kernel_module.parameters(), *likelihood.parameters()]
     optimizer = torch.optim.LBFGS(
         params, lr=1.0, max_iter=iterations, tolerance_grad=1e-5, tolerance_change=tolerance,
@@ -517,18 +381,6 @@ def fit_hyperparameters(
 
 
 # ---------------------------------------------------------------------------------------- the smoother
-
-
-def _prepare(timestamps: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    t = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-    y = np.asarray(xyz, dtype=np.float64)
-    if y.ndim != 2 or y.shape[1] != 3 or y.shape[0] != t.shape[0]:
-        raise ValueError(f"expected {t.shape[0]} x 3 positions for {t.shape[0]} timestamps, got {y.shape}")
-    if t.shape[0] == 0:
-        raise ValueError("cannot smooth an empty track")
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(y))):
-        raise ValueError("timestamps and positions must be finite (no NaN or inf)")
-    return t, y
 
 
 class GPSmoother:
@@ -614,17 +466,17 @@ class GPSmoother:
             ValueError: bad shapes, non-finite values, or queries beyond the horizon with
                 ``on_beyond_horizon="raise"``.
         """
-        t, y = _prepare(timestamps, xyz)
+        t, y = prepare(timestamps, xyz)
         query = t if query_times is None else np.asarray(query_times, dtype=np.float64).reshape(-1)
         if not np.all(np.isfinite(query)):
             raise ValueError("query times must be finite")
-        with _torch_threads(self.num_threads):
+        with torch_threads(self.num_threads):
             hp = fit_hyperparameters([(t, y)], self.hyperparameters) if self.fit else self.hyperparameters
             order = np.argsort(t, kind="stable")
             origin = t[order[0]]
             ts, ys, tq = t[order] - origin, y[order], query - origin
             horizon = self.horizon if self.horizon is not None else max(hp.lengthscale)
-            distance = _distance_to_nearest(ts, tq)
+            distance = distance_to_nearest(ts, tq)
             beyond = distance > horizon
             if beyond.any():
                 message = (f"{int(beyond.sum())} of {len(query)} query times lie more than {horizon:.3g} s "
@@ -643,136 +495,3 @@ class GPSmoother:
             mean[beyond] = np.nan
             std[beyond] = np.nan
         return SmoothedTrack(query.copy(), mean, std, beyond, hp, backend, float(horizon))
-
-
-#: The smoother preset used where none is asked for (the robust Student-t smoother, see zoo.robust_smoothing).
-DEFAULT_PRESET = "robust"
-
-
-def make_smoother(preset: str | None = None, **options: object):
-    """A smoother by preset name: ``paper`` / ``tuned`` make a :class:`GPSmoother`, ``robust`` (default) a
-    :class:`zoo.robust_smoothing.RobustSmoother`; ``options`` are that class's arguments. Both have
-    ``smooth(timestamps, xyz, query_times=None) -> SmoothedTrack``.
-    """
-    from zoo.robust_smoothing import ROBUST_PRESETS, RobustSmoother
-
-    name = DEFAULT_PRESET if preset is None else preset
-    if name in ROBUST_PRESETS:
-        return RobustSmoother(name, **options)  # type: ignore[arg-type]
-    if name not in PRESETS:
-        raise ValueError(f"unknown smoother preset {name!r}; expected one of {sorted({*PRESETS, *ROBUST_PRESETS})}")
-    return GPSmoother(name, **options)  # type: ignore[arg-type]
-
-
-def smooth_detected(smoother, timestamps: np.ndarray, xyz: np.ndarray, detected: np.ndarray) -> np.ndarray:
-    """One sequence's smoothed positions (N x 3) at every timestamp, from the detected rows alone.
-
-    Rows a net marks undetected hold a remembered or fallback position, not a measurement: the smoother
-    bridges them from the detections, and keeps the net's own position where the nearest detection is
-    beyond its horizon (there it would only drift back to the detections' mean). With fewer than two
-    detections, or no detection flags at all, every row is smoothed.
-    """
-    t = np.asarray(timestamps, dtype=np.float64)
-    positions = np.asarray(xyz, dtype=np.float64)
-    measured = np.asarray(detected, dtype=bool)
-    if int(measured.sum()) < 2:
-        measured = np.ones(len(t), dtype=bool)
-    track = smoother.smooth(t[measured], positions[measured], t)  # every query is measured when all are
-    return np.where(track.beyond_horizon[:, None], positions, np.asarray(track.mean))
-
-
-def _distance_to_nearest(sorted_t: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Distance from each query to the nearest of the sorted times."""
-    right = np.clip(np.searchsorted(sorted_t, q), 0, len(sorted_t) - 1)
-    left = np.clip(right - 1, 0, len(sorted_t) - 1)
-    return np.minimum(np.abs(sorted_t[right] - q), np.abs(q - sorted_t[left]))
-
-
-# ---------------------------------------------------------------------------------- files and batches
-
-
-def smooth_predictions(
-    timestamps: np.ndarray, xyz: np.ndarray, sequence_ids: Sequence[Hashable] | np.ndarray, **options: object
-) -> dict[Hashable, SmoothedTrack]:
-    """Smooth each sequence of a batch of predictions on its own.
-
-    Args:
-        timestamps: (N,) seconds.
-        xyz: (N, 3) predicted positions.
-        sequence_ids: (N,) the sequence of each row.
-        **options: :func:`make_smoother` arguments (``preset`` default ``robust``).
-
-    Returns:
-        ``{sequence_id: SmoothedTrack}``; the rows of each track are that sequence's rows in their input
-        order, i.e. ``np.flatnonzero(np.asarray(sequence_ids) == sequence_id)``.
-    """
-    ids = np.asarray(sequence_ids)
-    t = np.asarray(timestamps, dtype=np.float64).reshape(-1)
-    if ids.shape != t.shape:
-        raise ValueError(f"expected one sequence id per timestamp ({t.shape[0]}), got shape {ids.shape}")
-    positions = np.asarray(xyz, dtype=np.float64)
-    smoother = make_smoother(**options)  # type: ignore[arg-type]
-    out: dict[Hashable, SmoothedTrack] = {}
-    for sequence in dict.fromkeys(ids.tolist()):
-        rows = np.flatnonzero(ids == sequence)
-        out[sequence] = smoother.smooth(t[rows], positions[rows])
-    return out
-
-
-def read_track_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Timestamps (N,) and xyz (N, 3) of a ``timestamp,x,y,z`` CSV (MMAUD/TAME convention).
-
-    Raises:
-        TrackFileError: unreadable file, missing columns, non-numeric or non-finite values, < 2 rows.
-    """
-    path = Path(path)
-    try:
-        frame = pd.read_csv(path, dtype=str, skipinitialspace=True)
-    except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as error:
-        raise TrackFileError(f"{path}: cannot read a track CSV ({error})") from error
-    frame.columns = [str(c).strip() for c in frame.columns]
-    missing = [c for c in TRACK_COLUMNS if c not in frame.columns]
-    if missing:
-        raise TrackFileError(f"{path}: missing column(s) {missing}; expected the header "
-                             f"{','.join(TRACK_COLUMNS)}, found {list(frame.columns)}")
-    if len(frame) < 2:
-        raise TrackFileError(f"{path}: {len(frame)} data row(s); a track needs at least 2")
-    values = {}
-    for column in TRACK_COLUMNS:
-        numbers = pd.to_numeric(frame[column].str.strip(), errors="coerce").to_numpy(dtype=np.float64)
-        bad = np.flatnonzero(~np.isfinite(numbers))
-        if bad.size:
-            row = int(bad[0])
-            raise TrackFileError(f"{path}: column {column!r} has {bad.size} missing, non-numeric or "
-                                 f"non-finite value(s), first on data row {row + 1}: "
-                                 f"{frame[column].iloc[row]!r}")
-        values[column] = numbers
-    return values["timestamp"], np.stack([values["x"], values["y"], values["z"]], axis=1)
-
-
-def write_smoothed_csv(path: Path, track: SmoothedTrack, overwrite: bool = True) -> Path:
-    """Write ``timestamp,x,y,z,std_x,std_y,std_z`` atomically (temporary sibling, then rename)."""
-    path = Path(path)
-    frame = pd.DataFrame(np.column_stack([track.mean, track.std]), columns=list(SMOOTHED_COLUMNS[1:]))
-    frame.insert(0, "timestamp", [repr(float(v)) for v in track.timestamps])
-    with atomic_write(path, overwrite) as tmp, open(tmp, "w", newline="") as stream:
-        frame.to_csv(stream, index=False, float_format="%.6f", lineterminator="\n")
-    return path
-
-
-def smooth_track_file(src: Path, dst: Path, **options: object) -> SmoothedTrack:
-    """Smooth the track in CSV ``src`` and write it with per-axis std to ``dst`` (atomically).
-
-    Args:
-        src: ``timestamp,x,y,z`` CSV; extra columns are ignored.
-        dst: output CSV ``timestamp,x,y,z,std_x,std_y,std_z``, one row per input row, in input order.
-        **options: :func:`make_smoother` arguments (``preset``, default ``robust``, ``fit``, ...).
-
-    Raises:
-        TrackFileError: bad input; ``dst`` is then left untouched.
-    """
-    timestamps, xyz = read_track_csv(Path(src))
-    track = make_smoother(**options).smooth(timestamps, xyz)  # type: ignore[arg-type]
-    write_smoothed_csv(Path(dst), track)
-    log.info("smoothed %d points of %s (%s backend) -> %s", len(track), src, track.backend, dst)
-    return track
