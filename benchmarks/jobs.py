@@ -221,7 +221,7 @@ def _constant(job: JobSpec) -> dict[str, Any]:
     import torch
 
     from zoo.cli import lightning_cli
-    from zoo.metrics import TrajectoryError
+    from zoo.metrics import TrajectoryMetrics
 
     cli = lightning_cli(job.cli_args, run=False)
     datamodule = cli.datamodule
@@ -248,7 +248,7 @@ def _constant(job: JobSpec) -> dict[str, Any]:
     row: dict[str, Any] = {"alpha": 1.0 if job.target == "pseudo" else 0.0}
     for light in datamodule.test_lights:  # the metric the trained models are scored with
         rows = frame[frame["light"] == light]
-        metric = TrajectoryError()
+        metric = TrajectoryMetrics()
         metric.update(torch.from_numpy(rows[["x", "y", "z"]].to_numpy()),
                       torch.from_numpy(rows[["gt_x", "gt_y", "gt_z"]].to_numpy()),
                       torch.from_numpy(rows["gt_valid"].to_numpy() == 1))

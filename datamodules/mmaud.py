@@ -315,6 +315,11 @@ class MMAUDDataModule(L.LightningDataModule):
         """All sequence ids in a fixed order; batches carry an index into this list."""
         return [s.sequence_id for name in SPLITS for s in self.sequences.get(name, [])]
 
+    @property
+    def bev_bounds(self) -> list[list[float]]:
+        """The bird's-eye area [[x_min, x_max], [y_min, y_max]] (m) that heat-map and search nets cover."""
+        return self.hparams.bev_bounds
+
     def _index(self) -> None:
         from datamodules.formats import open_recording
 

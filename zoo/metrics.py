@@ -1,11 +1,15 @@
-"""Trajectory metrics of the AAUTE / TAME evaluation code, as a torchmetrics Metric.
+"""Trajectory metrics of the AAUTE / TAME evaluation code, as a torchmetrics Metric, and their logged names.
 
 Dx, Dy, Dz: mean absolute error per axis; E: mean Euclidean error (all samples, no filtering);
 RMSE: root of the mean squared Euclidean error. Metres. Synchronised across DDP processes by
-torchmetrics (sums and counts are reduced, then divided).
+torchmetrics (sums and counts are reduced, then divided). :class:`MetricKey` says which
+accumulator a value comes from and gives the name it is logged under (``val_E``,
+``test_E_pseudo_dark``, ``test_E_smooth_ideal``, ...), which results tables read.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import torch
 from torchmetrics import Metric
@@ -13,7 +17,28 @@ from torchmetrics import Metric
 NAMES = ("Dx", "Dy", "Dz", "E", "RMSE")
 
 
-class TrajectoryError(Metric):
+@dataclass(frozen=True)
+class MetricKey:
+    """One accumulator of trajectory metrics: a stage, a test loader's light condition and a reference."""
+
+    stage: str  #: 'val' or 'test'
+    light: str | None  #: the test loader's condition; None for validation, whose names carry none
+    #: 'gt' (unsuffixed), 'pseudo' (against pseudo-labels) or 'smooth' (smoothed predictions against ground truth)
+    reference: str = "gt"
+
+    @property
+    def slot(self) -> str:
+        """Its key in a ``ModuleDict`` of metrics."""
+        return f"{self.stage}|{self.light}|{self.reference}"
+
+    def logged_name(self, name: str) -> str:
+        """The logged name of metric ``name`` (one of ``NAMES``): ``<stage>_<name>[_<reference>][_<light>]``."""
+        reference = "" if self.reference == "gt" else f"_{self.reference}"
+        light = "" if self.light is None else f"_{self.light}"
+        return f"{self.stage}_{name}{reference}{light}"
+
+
+class TrajectoryMetrics(Metric):
     """Accumulates position errors over (prediction, target, valid) batches."""
 
     full_state_update = False
@@ -44,3 +69,7 @@ class TrajectoryError(Metric):
         if self.count == 0:
             result = {name: torch.tensor(float("nan"), dtype=torch.float64) for name in NAMES}
         return result
+
+
+#: Deprecated alias of :class:`TrajectoryMetrics` (the old name read like an exception); kept for one release.
+TrajectoryError = TrajectoryMetrics

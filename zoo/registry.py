@@ -3,19 +3,21 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
-
-from torch import nn
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from datamodules.errors import ConfigError
 
-_MODELS: dict[str, type[nn.Module]] = {}
+if TYPE_CHECKING:  # the nets import this module to register themselves: the base class is for annotations only
+    from zoo.nets.base import TrajectoryNet
+
+_MODELS: dict[str, type[TrajectoryNet]] = {}
+_Net = TypeVar("_Net", bound="TrajectoryNet")
 
 
-def register_model(name: str) -> Callable[[type[nn.Module]], type[nn.Module]]:
-    """Class decorator: make a network available as ``get_model(name)``."""
+def register_model(name: str) -> Callable[[type[_Net]], type[_Net]]:
+    """Class decorator: make a :class:`~zoo.nets.base.TrajectoryNet` available as ``get_model(name)``."""
 
-    def decorate(cls: type[nn.Module]) -> type[nn.Module]:
+    def decorate(cls: type[_Net]) -> type[_Net]:
         if name in _MODELS and _MODELS[name] is not cls:
             raise ValueError(f"model name {name!r} is already registered by {_MODELS[name].__qualname__}")
         cls.model_name = name
@@ -29,7 +31,7 @@ def _load_zoo() -> None:
     import zoo.nets  # noqa: F401  (registers the built-in networks)
 
 
-def model_class(name: str) -> type[nn.Module]:
+def model_class(name: str) -> type[TrajectoryNet]:
     """The class registered as ``name``; the error lists the known names."""
     _load_zoo()
     try:
@@ -38,7 +40,7 @@ def model_class(name: str) -> type[nn.Module]:
         raise ConfigError(f"unknown model {name!r}; known models: {', '.join(list_models())}") from None
 
 
-def get_model(name: str, **kwargs: Any) -> nn.Module:
+def get_model(name: str, **kwargs: Any) -> TrajectoryNet:
     """Build the network registered as ``name`` with ``kwargs`` (an argument it does not take: ConfigError)."""
     import inspect
 

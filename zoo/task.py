@@ -7,18 +7,19 @@ in the released code. The network's own auxiliary losses (class, visibility, hea
 added, computed against the same kind of target (pseudo-labels when alpha >= 0.5, else ground
 truth). A batch where no term has a valid target is skipped and counted, never turned into NaN.
 
-Metrics (:class:`zoo.metrics.TrajectoryError`) are logged per stage and light condition:
-``val_E``, ``val_Dx``, ... (the validation loader's condition), ``test_E_ideal``, ``test_E_dark``,
-...; errors against pseudo-labels get a ``_pseudo`` suffix. ``val_loss`` is the training objective
-on the validation split, so model selection under alpha = 1 never looks at ground truth. At
-test time predictions are collected per sequence, optionally smoothed, and written to
-``predictions_dir``.
+Metrics (:class:`zoo.metrics.TrajectoryMetrics`, named by :class:`zoo.metrics.MetricKey`) are
+logged per stage and light condition: ``val_E``, ``val_Dx``, ... (the validation loader),
+``test_E_ideal``, ``test_E_dark``, ...; errors against pseudo-labels get a ``_pseudo`` suffix.
+``val_loss`` is the training objective on the validation split, so model selection under alpha = 1
+never looks at ground truth. At test time predictions are collected per sequence and optionally
+smoothed; the writers of :mod:`zoo.callbacks` write them to ``predictions_dir`` (and at predict
+time into the recordings under ``predictions_topic``). What the task knows of its DataModule (sequence
+names and files, test lights, bird's-eye bounds) is a :class:`zoo.catalog.SequenceCatalog` read at setup.
 """
 
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -26,9 +27,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from datamodules.atomic import atomic_write
 from datamodules.errors import ConfigError, NonFiniteLossError
-from zoo.metrics import TrajectoryError
+from zoo.callbacks import PredictionCsvWriter, PredictionTopicWriter
+from zoo.catalog import CatalogSnapshot, read_catalog
+from zoo.metrics import MetricKey, TrajectoryMetrics
+from zoo.nets.base import TrajectoryNet
 from zoo.registry import get_model
 
 log = logging.getLogger(__name__)
@@ -54,9 +57,10 @@ class TrajectoryTask(L.LightningModule):
         smooth: smooth each test sequence's predictions and report both.
         smoother: keyword arguments of :func:`zoo.smoothing.make_smoother`: ``preset`` (default ``robust``,
             the Student-t state-space smoother; ``paper`` the paper's GP) and that smoother's options.
-        predictions_dir: write per-sequence prediction CSVs there at test/predict time.
+        predictions_dir: write per-sequence prediction CSVs there at test/predict time
+            (:class:`~zoo.callbacks.PredictionCsvWriter`).
         predictions_topic: also store each sequence's predictions in its MCAP recording under this
-            topic (e.g. ``/prediction/student``) at predict time.
+            topic (e.g. ``/prediction/student``) at predict time (:class:`~zoo.callbacks.PredictionTopicWriter`).
     """
 
     def __init__(
@@ -79,8 +83,11 @@ class TrajectoryTask(L.LightningModule):
         if loss not in LOSSES:
             raise ConfigError(f"loss must be one of {LOSSES}, got {loss!r}")
         self.save_hyperparameters()
-        self.net: nn.Module = get_model(net, **(net_kwargs or {}))
-        self.metrics = nn.ModuleDict()
+        self.net: TrajectoryNet = get_model(net, **(net_kwargs or {}))
+        self.metrics = nn.ModuleDict()  #: MetricKey.slot -> TrajectoryMetrics
+        self._metric_keys: dict[str, MetricKey] = {}
+        #: the DataModule's sequences and loaders, read at setup (the defaults without a DataModule)
+        self.catalog = CatalogSnapshot()
         self.skipped_batches = 0
         self._checked_inputs = False
         self._predictions: dict[int, list[dict[str, np.ndarray]]] = {}
@@ -90,10 +97,18 @@ class TrajectoryTask(L.LightningModule):
     # ------------------------------------------------------------------------------ helpers
 
     def setup(self, stage: str) -> None:
-        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
-        bounds = getattr(getattr(datamodule, "hparams", None), "bev_bounds", None)
-        if bounds is not None and hasattr(self.net, "set_bounds"):
-            self.net.set_bounds(bounds)
+        self.catalog = read_catalog(self.trainer.datamodule if self._trainer is not None else None)
+        if self.catalog.bev_bounds is not None:
+            self.net.set_bounds(self.catalog.bev_bounds)
+
+    def configure_callbacks(self) -> list[L.Callback]:
+        """The prediction writers that ``predictions_dir`` and ``predictions_topic`` ask for."""
+        callbacks: list[L.Callback] = []
+        if self.hparams.predictions_dir:
+            callbacks.append(PredictionCsvWriter(self.hparams.predictions_dir))
+        if self.hparams.predictions_topic:
+            callbacks.append(PredictionTopicWriter(self.hparams.predictions_topic))
+        return callbacks
 
     @property
     def learns(self) -> bool:
@@ -122,7 +137,7 @@ class TrajectoryTask(L.LightningModule):
                 source = f" (batch from {self._where(batch, every)})" if every is not None else ""
                 raise ConfigError(f"{error}{source}") from None
             self._checked_inputs = True
-        context = [name for name in getattr(self.net, "context_keys", ()) if name in batch]
+        context = [name for name in self.net.context_keys if name in batch]
         return {name: batch[name] for name in (*wanted, *context)}
 
     def _training_target(self, batch: dict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -136,7 +151,7 @@ class TrajectoryTask(L.LightningModule):
         """Total loss and its terms; None when no term has a valid target."""
         alpha, kind = self.hparams.alpha, self.hparams.loss
         terms: dict[str, torch.Tensor] = {}
-        if getattr(self.net, "trains_position", True):
+        if self.net.trains_position:
             position = outputs["position"]
             weighted = []
             for weight, target, valid, name in ((1.0 - alpha, batch["gt"], batch["gt_valid"], "gt"),
@@ -149,40 +164,31 @@ class TrajectoryTask(L.LightningModule):
                 return None, terms
             terms["position"] = torch.stack(weighted).sum()
         target, valid = self._training_target(batch)
-        if not getattr(self.net, "trains_position", True) and not valid.any():
+        if not self.net.trains_position and not valid.any():
             return None, terms
         terms.update(self.net.auxiliary_losses(outputs, batch, target, valid))
         total = sum(value for name, value in terms.items() if not name.startswith("position_"))
         return total, terms
 
-    def _metric(self, name: str) -> TrajectoryError:
-        if name not in self.metrics:
-            self.metrics[name] = TrajectoryError().to(self.device)
-        return self.metrics[name]
+    def _metric(self, key: MetricKey) -> TrajectoryMetrics:
+        if key.slot not in self.metrics:
+            self.metrics[key.slot] = TrajectoryMetrics().to(self.device)
+            self._metric_keys[key.slot] = key
+        return self.metrics[key.slot]
 
-    def _light(self, stage: str, dataloader_idx: int) -> str:
-        datamodule = getattr(self.trainer, "datamodule", None)
-        if stage == "val":
-            return getattr(getattr(datamodule, "hparams", None), "light", "ideal")
-        lights = getattr(datamodule, "test_lights", None) or ["ideal", "dark"]
-        return lights[dataloader_idx] if dataloader_idx < len(lights) else str(dataloader_idx)
+    def _log_values(self, key: MetricKey, metric: TrajectoryMetrics) -> None:
+        for name, value in metric.compute().items():
+            self.log(key.logged_name(name), value.float(), add_dataloader_idx=False)
 
-    def _log_metrics(self, prefix: str) -> None:
-        for key in [k for k in self.metrics if k.startswith(prefix)]:
-            metric = self.metrics[key]
-            for name, value in metric.compute().items():
-                parts = key.split("|")  # stage|light|reference
-                stage, light, reference = parts[0], parts[1], parts[2]
-                suffix = "" if stage == "val" else f"_{light}"
-                ref = "" if reference == "gt" else f"_{reference}"
-                self.log(f"{stage}_{name}{ref}{suffix}", value.float(), add_dataloader_idx=False)
-            metric.reset()
+    def _log_metrics(self, stage: str) -> None:
+        for slot, key in self._metric_keys.items():
+            if key.stage == stage:
+                self._log_values(key, self.metrics[slot])
+                self.metrics[slot].reset()
 
     def _where(self, batch: dict[str, torch.Tensor], rows: torch.Tensor) -> str:
         """The recordings and times of batch ``rows`` (a boolean mask), for error messages."""
-        names = self._sequence_names() if self._trainer is not None else []
-        datamodule = getattr(self.trainer, "datamodule", None) if self._trainer is not None else None
-        paths = list(getattr(datamodule, "sequence_paths", []))
+        names, paths = self.catalog.sequence_ids, self.catalog.sequence_paths
         found = torch.nonzero(rows).flatten().tolist()
         times: dict[str, list[str]] = {}
         for i in found:
@@ -242,10 +248,10 @@ class TrajectoryTask(L.LightningModule):
 
     def _evaluate(self, batch: dict[str, torch.Tensor], stage: str, dataloader_idx: int) -> dict[str, torch.Tensor]:
         outputs = self.net(self._inputs(batch))
-        light = self._light(stage, dataloader_idx)
+        light = None if stage == "val" else self.catalog.test_light(dataloader_idx)
         position = outputs["position"]
-        self._metric(f"{stage}|{light}|gt").update(position, batch["gt"], batch["gt_valid"])
-        self._metric(f"{stage}|{light}|pseudo").update(position, batch["pseudo"], batch["pseudo_valid"])
+        self._metric(MetricKey(stage, light, "gt")).update(position, batch["gt"], batch["gt_valid"])
+        self._metric(MetricKey(stage, light, "pseudo")).update(position, batch["pseudo"], batch["pseudo_valid"])
         return outputs
 
     def validation_step(self, batch: dict[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0) -> None:
@@ -256,7 +262,7 @@ class TrajectoryTask(L.LightningModule):
             self.log("val_loss", total, batch_size=len(batch["gt"]), add_dataloader_idx=False)
 
     def on_validation_epoch_end(self) -> None:
-        self._log_metrics("val|")
+        self._log_metrics("val")
 
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0) -> None:
         outputs = self._evaluate(batch, "test", dataloader_idx)
@@ -267,11 +273,9 @@ class TrajectoryTask(L.LightningModule):
         self.smoothed_predictions = {}
 
     def on_test_epoch_end(self) -> None:
-        self._log_metrics("test|")
+        self._log_metrics("test")
         if self.hparams.smooth:
             self._log_smoothed()
-        if self.hparams.predictions_dir:
-            self._write_predictions("test")
 
     def predict_step(self, batch: dict[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0) -> dict:
         position = self.net(self._inputs(batch))["position"]
@@ -280,12 +284,6 @@ class TrajectoryTask(L.LightningModule):
 
     def on_predict_epoch_start(self) -> None:
         self._predictions = {}
-
-    def on_predict_epoch_end(self) -> None:
-        if self.hparams.predictions_dir:
-            self._write_predictions("predict")
-        if self.hparams.predictions_topic:
-            self._store_predictions(self.hparams.predictions_topic)
 
     # ------------------------------------------------------------------------------ predictions
 
@@ -301,6 +299,10 @@ class TrajectoryTask(L.LightningModule):
             "detected": (np.ones(len(position), dtype=bool) if detected is None
                          else detected.detach().cpu().numpy().astype(bool)),
         })
+
+    def collected_loaders(self) -> list[int]:
+        """The indices of the loaders this process collected predictions of, in order."""
+        return sorted(self._predictions)
 
     def sequence_predictions(self, dataloader_idx: int = 0) -> dict[int, dict[str, np.ndarray]]:
         """This process's collected predictions of one loader, grouped by sequence and sorted by time."""
@@ -319,50 +321,15 @@ class TrajectoryTask(L.LightningModule):
         from zoo.smoothing import make_smoother, smooth_detected
 
         smoother = make_smoother(**(self.hparams.smoother or {}))
-        for dataloader_idx in sorted(self._predictions):
-            metric = TrajectoryError().to(self.device)
+        for dataloader_idx in self.collected_loaders():
+            metric = TrajectoryMetrics().to(self.device)
             kept = self.smoothed_predictions.setdefault(dataloader_idx, {})
             for index, sequence in self.sequence_predictions(dataloader_idx).items():
                 smoothed = kept[index] = smooth_detected(smoother, sequence["time"], sequence["position"],
                                                          sequence["detected"])
                 metric.update(torch.from_numpy(np.asarray(smoothed)), torch.from_numpy(sequence["gt"]),
                               torch.from_numpy(sequence["gt_valid"]))
-            light = self._light("test", dataloader_idx)
-            for name, value in metric.compute().items():
-                self.log(f"test_{name}_smooth_{light}", value.float(), add_dataloader_idx=False)
-
-    def _sequence_names(self) -> list[str]:
-        datamodule = getattr(self.trainer, "datamodule", None)
-        return list(getattr(datamodule, "sequence_ids", []))
-
-    def _write_predictions(self, stage: str) -> None:
-        import pandas as pd
-
-        names = self._sequence_names()
-        out = Path(self.hparams.predictions_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        for dataloader_idx in sorted(self._predictions):
-            light = self._light("test", dataloader_idx)
-            for index, sequence in self.sequence_predictions(dataloader_idx).items():
-                name = names[index] if index < len(names) else f"sequence{index}"
-                frame = pd.DataFrame({"timestamp": sequence["time"], "x": sequence["position"][:, 0],
-                                      "y": sequence["position"][:, 1], "z": sequence["position"][:, 2]})
-                with atomic_write(out / f"{name}_{light}.csv") as tmp:
-                    frame.to_csv(tmp, index=False, float_format="%.6f")
-        log.info("%s predictions written to %s", stage, out)
-
-    def _store_predictions(self, topic: str) -> None:
-        """Write the first loader's predictions into each sequence's MCAP file as a track topic."""
-        from datamodules.formats.mcap_file import replace_track
-        from datamodules.recording import Track
-
-        paths = list(getattr(getattr(self.trainer, "datamodule", None), "sequence_paths", []))
-        for index, sequence in self.sequence_predictions(0).items():
-            path = paths[index] if index < len(paths) else None
-            if path is None or Path(path).suffix != ".mcap":
-                raise ValueError(f"predictions_topic needs MCAP recordings; sequence {index} is {path}")
-            replace_track(path, topic, Track(sequence["time"], sequence["position"]))
-        log.info("predictions stored under %s in %d recording(s)", topic, len(paths))
+            self._log_values(MetricKey("test", self.catalog.test_light(dataloader_idx), "smooth"), metric)
 
     # ------------------------------------------------------------------------------ optimiser
 

@@ -226,7 +226,6 @@ def test_test_time_smoothing_bridges_the_windows_a_net_did_not_detect():
     batch = {"sequence": torch.zeros(80, dtype=torch.long), "time": torch.from_numpy(t),
              "gt": torch.from_numpy(gt), "gt_valid": torch.ones(80, dtype=torch.bool)}
     task.log = lambda *args, **kwargs: None  # no trainer attached: the logged values are not looked at
-    task._light = lambda stage, dataloader_idx: "ideal"
     task.on_test_epoch_start()
     task._collect(0, batch, torch.from_numpy(position), torch.from_numpy(detected))
     task._log_smoothed()

@@ -63,8 +63,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from zoo.nets.base import NUM_CLASSES, TrajectoryNet
-from zoo.nets.blocks import MLP, FourBranchAudio, VisibilityGate, VisualEncoder, classification_loss, visibility_loss
+from zoo.nets.base import NUM_CLASSES, TrajectoryNet, classification_loss
+from zoo.nets.blocks import MLP, FourBranchAudio, VisibilityGate, VisualEncoder, visibility_loss
 from zoo.registry import register_model
 
 log = logging.getLogger(__name__)

@@ -7,7 +7,9 @@ declare what it consumes (input name -> recipe of :mod:`datamodules.features`), 
 the paper's table, and whether the position output is trained by regression (AV-FDTI decodes its
 position from a heat map and trains only its auxiliary losses). ``auxiliary_losses`` returns the
 net's own weighted loss terms given its outputs and the training targets; by default that is
-``class_weight`` x the cross-entropy of a ``class_logits`` head, if the net has one.
+``class_weight`` x the cross-entropy of a ``class_logits`` head (:func:`classification_loss`), if
+the net has one. :meth:`TrajectoryNet.set_bounds` receives the data's bird's-eye area before a run;
+only nets that search or decode a region (SRP-PHAT, the phase student, AV-FDTI) use it.
 
 The class attribute ``inputs`` is the reference (the papers' recipes; profiling builds a default net,
 so reference GMACs never change). A net built with ``input_recipes`` (e.g. ``{"image": "resnet64"}``,
@@ -45,6 +47,7 @@ class TrajectoryNet(nn.Module):
     #: input name -> recipe; on the class: the reference recipes; on an instance: the ones it reads
     inputs: dict[str, str] = {}
     category: ClassVar[str] = "supervised"  #: 'supervised' or 'self-supervised' (the paper's table)
+    #: False when the position is decoded, not regressed (AV-FDTI, SRP-PHAT): only auxiliary losses train it
     trains_position: ClassVar[bool] = True
     #: batch entries the net reads besides its inputs, when the batch has them (e.g. ``mic_positions``, ``time``)
     context_keys: ClassVar[tuple[str, ...]] = ()
@@ -115,13 +118,22 @@ class TrajectoryNet(nn.Module):
         return {name: torch.rand(batch_size, *shape, generator=generator) * (2 if name == "image" else 1)
                 - (1 if name == "image" else 0) for name, shape in self.input_shapes().items()}
 
+    def set_bounds(self, bounds: list[list[float]] | torch.Tensor) -> None:
+        """Take the data's bird's-eye area [[x_min, x_max], [y_min, y_max]] (m); by default it is not used."""
+
     def auxiliary_losses(
         self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], target: torch.Tensor,
         target_valid: torch.Tensor,
     ) -> dict[str, torch.Tensor]:
         """Weighted auxiliary loss terms (name -> scalar); ``target`` is the training position target."""
         if self.class_weight > 0 and "class_logits" in outputs and "class_id" in batch:
-            from zoo.nets.blocks import classification_loss
-
             return {"class": self.class_weight * classification_loss(outputs["class_logits"], batch["class_id"])}
         return {}
+
+
+def classification_loss(logits: torch.Tensor, class_id: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy over samples with a known class (class id -1 is ignored)."""
+    known = class_id >= 0
+    if not known.any():
+        return logits.sum() * 0.0
+    return nn.functional.cross_entropy(logits[known], class_id[known])

@@ -166,14 +166,6 @@ class VisibilityGate(nn.Module):
         return (weights.unsqueeze(-1) * tokens).sum(dim=1), logits
 
 
-def classification_loss(logits: torch.Tensor, class_id: torch.Tensor) -> torch.Tensor:
-    """Cross-entropy over samples with a known class (class id -1 is ignored)."""
-    known = class_id >= 0
-    if not known.any():
-        return logits.sum() * 0.0
-    return nn.functional.cross_entropy(logits[known], class_id[known])
-
-
 def visibility_loss(logits: torch.Tensor, visible: torch.Tensor) -> torch.Tensor:
     """Cross-entropy of the visibility logits against the 0/1 "drone visible" label."""
     return nn.functional.cross_entropy(logits, visible.round().long())
