@@ -1,1 +1,1 @@
-"""Everything that turns MMAUD(-like) recordings into batches: data model, formats, simulator, teacher."""
+"""Everything that turns MMAUD(-like) recordings into batches: data model, formats, simulator, teacher, features."""

@@ -1,4 +1,4 @@
-"""The model zoo: networks, the Lightning task, smoothing, weights and the ``aaute`` command.
+"""The model zoo: networks, the Lightning task, smoothing, weights, deployment and the zoo's subcommands.
 
 The public face (like ``timm.create_model`` / ``torchgeo.models.get_weight``)::
 
