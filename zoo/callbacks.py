@@ -5,8 +5,8 @@ y, z``, six decimals, written atomically) for every sequence of every loader at 
 or predict epoch; :class:`PredictionTopicWriter` stores the first loader's trajectories in each
 sequence's MCAP recording under a track topic at the end of a predict epoch. Both read what the task
 collected (:class:`PredictionSource`), per sequence and sorted by time, and name sequences and
-loaders by the task's :class:`~zoo.catalog.CatalogSnapshot`. Every process writes what it
-collected, as the task did before these writers existed.
+loaders by the task's :class:`~zoo.catalog.CatalogSnapshot`. Under DDP every process writes the
+sequences it collected (no rank is singled out).
 """
 
 from __future__ import annotations
