@@ -148,7 +148,7 @@ class TrajectoryTask(L.LightningModule):
 
     def objective(self, outputs: dict[str, torch.Tensor], batch: dict[str, torch.Tensor]
                   ) -> tuple[torch.Tensor | None, dict[str, torch.Tensor]]:
-        """Total loss and its terms; None when no term has a valid target."""
+        """Total loss and its terms; None when no term has a valid target, or the net has no term to train."""
         alpha, kind = self.hparams.alpha, self.hparams.loss
         terms: dict[str, torch.Tensor] = {}
         if self.net.trains_position:
@@ -167,8 +167,10 @@ class TrajectoryTask(L.LightningModule):
         if not self.net.trains_position and not valid.any():
             return None, terms
         terms.update(self.net.auxiliary_losses(outputs, batch, target, valid))
-        total = sum(value for name, value in terms.items() if not name.startswith("position_"))
-        return total, terms
+        contributing = [value for name, value in terms.items() if not name.startswith("position_")]
+        if not contributing:  # a net with nothing to train (srp_phat) has no objective
+            return None, terms
+        return sum(contributing), terms
 
     def _metric(self, key: MetricKey) -> TrajectoryMetrics:
         if key.slot not in self.metrics:

@@ -62,3 +62,19 @@ def test_every_registered_net_follows_the_contract(name):
     cls = model_class(name)
     assert issubclass(cls, TrajectoryNet) and cls.model_name == name
     assert isinstance(cls.trains_position, bool) and callable(cls.set_bounds)
+
+
+def test_a_net_with_nothing_to_train_has_no_objective():
+    """srp_phat trains no position and has no auxiliary loss: validation (and Lightning's sanity check of
+    ``aaute fit``) must skip its loss, not take the finite check of an integer 0."""
+    import torch
+
+    task = TrajectoryTask(net="srp_phat")
+    assert not task.net.trains_position
+    batch = {"gt": torch.zeros(2, 3), "gt_valid": torch.ones(2, dtype=torch.bool),
+             "pseudo": torch.zeros(2, 3), "pseudo_valid": torch.ones(2, dtype=torch.bool)}
+    total, terms = task.objective({"position": torch.ones(2, 3)}, batch)
+    assert total is None and terms == {}
+    trained = TrajectoryTask(net="student")
+    total, _ = trained.objective({"position": torch.ones(2, 3, requires_grad=True)}, batch)
+    assert torch.is_tensor(total) and total.item() > 0
