@@ -174,6 +174,10 @@ def load_suite(path: str | Path, overrides: dict[str, Any] | None = None) -> Sui
     lights = raw.setdefault("lights", list(LIGHTS))
     if not lights or set(lights) - set(LIGHTS):
         raise _fail(path, f"lights must be a non-empty subset of {list(LIGHTS)}, got {lights}")
+    seeds = raw.setdefault("seeds", [0])
+    if (not isinstance(seeds, list) or not seeds or any(type(s) is not int for s in seeds)
+            or len(set(seeds)) != len(seeds)):
+        raise _fail(path, f"seeds must be a non-empty list of distinct integers, got {seeds!r}")
     constant = raw.setdefault("constant", list(CONSTANT_TARGETS))
     if constant and set(constant) - set(CONSTANT_TARGETS):
         raise _fail(path, f"constant must list targets of {list(CONSTANT_TARGETS)}, got {constant}")
@@ -193,6 +197,7 @@ def load_suite(path: str | Path, overrides: dict[str, Any] | None = None) -> Sui
             if name not in protocols:
                 raise _fail(path, f"model {entry['model']!r} names protocol {name!r}, which the suite does not "
                                   f"define (defined: {sorted(protocols)})")
+    _refuse_repeated_models(path, models, list(protocols))
     launcher = raw.get("launcher") or {}
     unknown = sorted(set(launcher) - LAUNCHER_KEYS)
     if unknown:
@@ -203,6 +208,18 @@ def load_suite(path: str | Path, overrides: dict[str, Any] | None = None) -> Sui
         if not Path(config).is_file():
             raise _fail(path, f"config file {config} not found")
     return Suite(path, str(raw["name"]), Path(raw.get("out") or f"benchmark_out/{raw['name']}"), raw)
+
+
+def _refuse_repeated_models(path: Path, models: list[dict[str, Any]], protocols: list[str]) -> None:
+    """Two entries of one model in one protocol would share a job id and a folder: refused."""
+    seen: set[tuple[str, str]] = set()
+    for entry in models:
+        for protocol in entry.get("protocols") or protocols:
+            key = (entry["model"], protocol)
+            if key in seen:
+                raise _fail(path, f"model {entry['model']!r} is listed twice for protocol {protocol!r} (its jobs "
+                                  f"would share one id and folder); keep one entry, or give each its own protocols")
+            seen.add(key)
 
 
 def _trainer_configs(raw: dict[str, Any]) -> list[str]:
@@ -260,7 +277,7 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
     raw = suite.raw
     launcher = suite.launcher
     threads = int(launcher["threads_per_job"])
-    seeds = [int(s) for s in raw.get("seeds") or [0]]
+    seeds = list(raw["seeds"])
     data_info = {"description": suite.data.get("description", ""), "kind": suite.data.get("kind", "simulated"),
                  "root": str(suite.data["root"]), "fingerprint": data_fingerprint}
     jobs: list[JobSpec] = []

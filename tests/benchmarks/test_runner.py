@@ -85,6 +85,26 @@ def test_suite_errors_name_the_key(tmp_path, labelled_dir):
         check_job_args(suite, expand_jobs(suite))
 
 
+@pytest.mark.parametrize("seeds", [[], [0, 0], ["a"], [1.5], None])
+def test_seeds_must_be_a_non_empty_list_of_distinct_integers(tmp_path, seeds):
+    path = _write_suite(tmp_path / "s.yaml", root=str(tmp_path), cache=str(tmp_path / "cache"), seeds=seeds)
+    with pytest.raises(SuiteError, match=r"s\.yaml: seeds must be a non-empty list of distinct integers"):
+        load_suite(path)
+
+
+def test_a_model_listed_twice_in_one_protocol_is_refused(tmp_path):
+    student = {"model": "student", "config": str(REPO / "configs/model/student.yaml")}
+    path = _write_suite(tmp_path / "s.yaml", root=str(tmp_path), cache=str(tmp_path / "cache"),
+                        models=[student, {**student, "budget_note": "longer"}])
+    with pytest.raises(SuiteError, match=r"s\.yaml: model 'student' is listed twice for protocol 'by_sequence'"):
+        load_suite(path)
+    protocols = {"by_sequence": SPLIT, "time_blocks": {}}
+    apart = _write_suite(tmp_path / "t.yaml", root=str(tmp_path), cache=str(tmp_path / "cache"), protocols=protocols,
+                         models=[{**student, "protocols": ["by_sequence"]}, {**student, "protocols": ["time_blocks"]}])
+    jobs = expand_jobs(load_suite(apart))
+    assert len({j.job_id for j in jobs}) == len(jobs)
+
+
 @pytest.mark.parametrize("path", SUITES, ids=lambda p: getattr(p, "stem", None))
 def test_shipped_suites_expand_and_parse(path):
     suite = load_suite(path, {"data.root": "/data/mmaud"} if path.stem == "mmaud_v1" else None)
