@@ -97,22 +97,25 @@ def append_rows(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> None:
     """Append rows to ``results.csv`` atomically: the file is rewritten to a temporary sibling and renamed.
 
     An interrupted append therefore leaves either the old file or the new one, never half a row.
+    Columns a user added to the file (notes, ...) are kept, after the schema's, with their values;
+    the new rows leave them empty.
     """
     path = Path(path)
     new = [format_row(row) for row in rows]
     if not new:
         return
     old = path.read_text() if path.exists() else ""
+    columns = COLUMNS
     if old:
-        earlier = read_results(path)  # refuses a file of another schema
-        if next(csv.reader([old.splitlines()[0]])) != COLUMNS:  # an older header: rewrite its rows under this one
-            new = [{column: cell for column, cell in row.items() if column in COLUMNS}
-                   for row in earlier.astype(object).where(earlier.notna(), "").to_dict("records")] + new
+        header, earlier = read_cells(path)  # refuses a file of another schema
+        columns = COLUMNS + [column for column in header if column not in COLUMNS]
+        if header != columns:  # an older header or user columns out of place: rewrite its rows under this one
+            new = earlier.reindex(columns=columns, fill_value="").to_dict("records") + new
             old = ""
         elif not old.endswith("\n") and len(old.splitlines()) - 1 > len(earlier):
             old = old[: old.rfind("\n") + 1]  # drop a line cut short by an interrupted writer
     buffer = io.StringIO()
-    writer = csv.DictWriter(buffer, fieldnames=COLUMNS, lineterminator="\n")
+    writer = csv.DictWriter(buffer, fieldnames=columns, lineterminator="\n", restval="")
     if not old:
         writer.writeheader()
     writer.writerows(new)
@@ -122,12 +125,8 @@ def append_rows(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> None:
         tmp.write_text(old + buffer.getvalue())
 
 
-def read_results(path: str | Path) -> pd.DataFrame:
-    """Read ``results.csv``; a file of another schema version or with missing columns is refused.
-
-    A last line cut short (by a writer without atomic appends) is dropped with a warning; every
-    other malformed line is an error naming its line number.
-    """
+def read_cells(path: str | Path) -> tuple[list[str], pd.DataFrame]:
+    """The file's header and its rows as text cells, after the schema checks of :func:`read_results`."""
     path = Path(path)
     if not path.is_file():
         raise ResultsError(f"{path}: no such results file (run 'aaute benchmark' first)")
@@ -157,10 +156,39 @@ def read_results(path: str | Path) -> pd.DataFrame:
     if versions:
         raise ResultsError(f"{path}: rows of results schema version(s) {sorted(versions)}; this version "
                            f"reads {SCHEMA_VERSION} (re-run the suite into a new file)")
-    numeric = ["seed", "alpha", *DATA[6:], *BUDGET[:5], *METRICS, *BREAKDOWN,
-               *(c for c in PROFILE if c != "profile_inputs"), "threads", "wall_time_s"]
-    for column in numeric:
-        frame[column] = pd.to_numeric(frame[column], errors="coerce")  # empty cells -> NaN
+    return header, frame
+
+
+#: measured quantities: a number >= 0 or empty (the leaderboard ranks them)
+MEASURES = [*METRICS, *BREAKDOWN, *(c for c in PROFILE if c not in ("profile_inputs", "threads_all")), "wall_time_s"]
+NUMERIC = ["seed", "alpha", *DATA[6:], *BUDGET[:5], *METRICS, *BREAKDOWN,
+           *(c for c in PROFILE if c != "profile_inputs"), "threads", "wall_time_s"]
+
+
+def read_results(path: str | Path, check_values: bool = True) -> pd.DataFrame:
+    """Read ``results.csv``; a file of another schema version or with missing columns is refused.
+
+    A last line cut short (by a writer without atomic appends) is dropped with a warning; every
+    other malformed line is an error naming its line number. With ``check_values``, a numeric cell
+    that is text, and a measure (metric, breakdown, profile number) that is infinite, NaN or negative,
+    is an error naming the file, line and column: such a number must never be ranked.
+    """
+    path = Path(path)
+    _, frame = read_cells(path)
+    for column in NUMERIC:
+        text = frame[column].str.strip()
+        values = pd.to_numeric(text, errors="coerce")  # empty cells -> NaN
+        if check_values:
+            wrong = values.isna()
+            if column in MEASURES:
+                wrong |= (values.abs() == float("inf")) | (values < 0)
+            bad = text.ne("") & wrong
+            if bad.any():
+                row = int(bad.to_numpy().argmax())
+                expected = "a finite number >= 0" if column in MEASURES else "a number"
+                raise ResultsError(f"{path}: line {row + 2}, column {column}: {frame[column].iloc[row]!r} is not "
+                                   f"{expected} (fix or empty the cell)")
+        frame[column] = values
     return frame
 
 

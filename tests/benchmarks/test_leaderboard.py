@@ -321,6 +321,9 @@ def rewrite(path: Path, change) -> None:
 @pytest.mark.parametrize(("case", "message"), [
     ("schema", "schema version"), ("columns", "missing column"), ("empty", "empty file"),
     ("header", "no result rows"), ("failed", "no successful model or constant rows"), ("suite", "unknown suite"),
+    ("inf", "line 2, column E_ideal: 'inf' is not a finite number >= 0"),
+    ("negative", "line 2, column E_ideal: '-0.5' is not a finite number >= 0"),
+    ("text", "line 2, column E_ideal: 'n/a' is not a finite number >= 0"),
 ])
 def test_bad_input_is_one_line_and_exit_code_2(results_csv, tmp_path, capsys, case, message):
     argv = [results_csv, "--out", tmp_path / "bad", "--no-plots"]
@@ -336,6 +339,10 @@ def test_bad_input_is_one_line_and_exit_code_2(results_csv, tmp_path, capsys, ca
         status = COLUMNS.index("status")
         rewrite(results_csv, lambda rows: [rows[0]] + [[*row[:status], "failed", *row[status + 1:]]
                                                        for row in rows[1:]])
+    elif case in ("inf", "negative", "text"):  # never shown as missing nor ranked as best
+        cell = {"inf": "inf", "negative": "-0.5", "text": "n/a"}[case]
+        at = COLUMNS.index("E_ideal")
+        rewrite(results_csv, lambda rows: [rows[0], [*rows[1][:at], cell, *rows[1][at + 1:]], *rows[2:]])
     else:
         argv += ["--suite", "nope"]
     code, out, err = run_cli(capsys, *argv)

@@ -76,3 +76,32 @@ def test_a_file_from_before_the_smoother_column_is_read_and_extended(tmp_path):
     frame = read_results(path)
     assert frame["job_id"].tolist() == ["student-by_sequence-s0", "robust-job"]
     assert frame["smoother"].tolist() == ["", "robust"] and frame["E_ideal"].tolist() == [7.5, 7.5]
+
+
+@pytest.mark.parametrize(("column", "cell"), [("E_ideal", "inf"), ("E_ideal", "-1.5"), ("E_dark", "oops"),
+                                              ("E_ideal_r0_10", "nan"), ("gmacs", "-0.1"), ("seed", "zero")])
+def test_a_broken_number_is_refused_naming_the_file_line_and_column(tmp_path, column, cell):
+    path = tmp_path / "results.csv"
+    append_rows(path, [ROW, {**ROW, "job_id": "second"}])
+    header, first, second = path.read_text().splitlines()
+    cells = second.split(",")
+    cells[header.split(",").index(column)] = cell
+    path.write_text("\n".join([header, first, ",".join(cells)]) + "\n")
+    with pytest.raises(ResultsError, match=rf"results\.csv: line 3, column {column}: '{cell}' is not"):
+        read_results(path)
+    append_rows(path, [{**ROW, "job_id": "third"}])  # appending is not the place to refuse it
+    assert len(read_results(path, check_values=False)) == 3
+
+
+def test_columns_a_user_added_are_kept_when_rows_are_appended(tmp_path):
+    path = tmp_path / "results.csv"
+    append_rows(path, [ROW])
+    header, body = path.read_text().splitlines()
+    path.write_text(f"notes,{header},owner\n\"rerun, lr too high\",{body},ana\n")
+    append_rows(path, [{**ROW, "job_id": "second"}])
+    assert path.read_text().split("\n", 1)[0] == ",".join([*COLUMNS, "notes", "owner"])
+    frame = read_results(path)
+    assert frame["notes"].tolist() == ["rerun, lr too high", ""] and frame["owner"].tolist() == ["ana", ""]
+    assert frame["E_ideal"].tolist() == [7.5, 7.5]
+    append_rows(path, [{**ROW, "job_id": "third"}])  # now in place: a plain append
+    assert read_results(path)["notes"].tolist() == ["rerun, lr too high", "", ""]
