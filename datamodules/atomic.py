@@ -79,6 +79,7 @@ def atomic_write(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
 
     Raises:
         FileExistsError: ``path`` exists and ``overwrite`` is False (checked before anything is written).
+        PermissionError: the folder cannot be written (the message names ``path``, not the temporary file).
     """
     path = Path(path)
     if path.exists() and not overwrite:
@@ -86,7 +87,10 @@ def atomic_write(path: str | Path, overwrite: bool = True) -> Iterator[Path]:
     path.parent.mkdir(parents=True, exist_ok=True)
     remove_stale_temporaries(path)
     tmp = temporary_path(path)
-    lock = os.open(tmp, os.O_WRONLY | os.O_CREAT, 0o644)
+    try:
+        lock = os.open(tmp, os.O_WRONLY | os.O_CREAT, 0o644)
+    except OSError as error:  # name the file asked for, not the hidden temporary one
+        raise PermissionError(f"{path}: cannot write into {path.parent} ({error.strerror})") from None
     try:
         fcntl.flock(lock, fcntl.LOCK_EX)  # held until the rename: marks the write as in progress
         yield tmp

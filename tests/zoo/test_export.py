@@ -58,7 +58,7 @@ def test_export_writes_a_checkpoint_loadable_alone_and_an_onnx_file_equal_to_pyt
 def test_an_onnx_file_that_disagrees_is_not_kept(tmp_path):
     net = get_model("student", kernels=4, feature_dim=16).eval()
     with pytest.raises(ExportError, match="onnxruntime's outputs differ from PyTorch's"):
-        export_onnx(net, tmp_path / "student.onnx", {}, tolerance=-1.0)  # any difference is too large
+        export_onnx(net, tmp_path / "student.onnx", {}, relative=-1.0)  # any difference is too large
     assert list(tmp_path.iterdir()) == []
 
 
@@ -82,3 +82,64 @@ def test_export_without_onnx_installed_is_one_line_exit_2_and_writes_nothing(tmp
     assert "pip install -e '.[export]'" in err
     assert err.count("\n") == 1 and "Traceback" not in err
     assert list(out.iterdir()) == []  # neither <out>.onnx nor <out>.pt
+
+
+def test_outputs_of_hundreds_of_metres_pass_within_float32_rounding_of_their_scale(tmp_path):
+    torch.manual_seed(0)
+    net = get_model("student").eval()
+    last = [module for module in net.head.modules() if isinstance(module, torch.nn.Linear)][-1]
+    with torch.no_grad():  # positions of some hundreds of metres: rounding beyond an absolute 1e-5
+        last.weight.mul_(1e4)
+        last.bias.mul_(1e4)
+    done = export(net, tmp_path / "student", {}, {"source": "scaled"})
+    assert done.onnx.is_file() and 1e-5 < done.max_difference < 1e-2
+
+
+def test_a_failed_export_removes_every_file_it_wrote(tmp_path, monkeypatch, capsys):
+    net = get_model("student", kernels=4, feature_dim=16).eval()
+    source = save_weights_file(net, tmp_path / "trained.pt", {"kernels": 4, "feature_dim": 16})
+    out = tmp_path / "deploy"
+    out.mkdir()
+
+    def refuse(*args, **kwargs):
+        raise ExportError("student.onnx: onnxruntime's outputs differ")
+
+    monkeypatch.setattr("zoo.deploy.export.export_onnx", refuse)
+    argv = ["export", "--weights", str(source), "--out", str(out / "student"), "--original-format", "aaute"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("aaute: error: student.onnx") and err.count("\n") == 1
+    assert list(out.iterdir()) == []
+    monkeypatch.undo()
+
+    def full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr("zoo.deploy.export.save_weights_file", full)  # the last file fails: the others go too
+    with pytest.raises(OSError, match="No space left"):
+        export(net, out / "student", {}, {}, original_format="aaute")
+    assert list(out.iterdir()) == []
+    monkeypatch.undo()
+    assert main(argv) == 0  # and the next try is not refused as "already exists"
+    assert sorted(p.name for p in out.iterdir()) == ["student.onnx", "student.pt", "student_aaute.pth"]
+
+
+def test_export_into_a_folder_it_cannot_write_names_the_file_not_its_temporary(tmp_path, monkeypatch, capsys):
+    import os
+
+    net = get_model("student", kernels=4, feature_dim=16).eval()
+    source = save_weights_file(net, tmp_path / "trained.pt", {"kernels": 4, "feature_dim": 16})
+    out = tmp_path / "locked"
+    out.mkdir()
+    real_open = os.open
+
+    def read_only(path, *args, **kwargs):  # what a folder of mode 555 does to a user other than root
+        if str(path).startswith(str(out)):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", read_only)
+    assert main(["export", "--weights", str(source), "--out", str(out / "student")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"aaute: error: {out / 'student.onnx'}: cannot write into {out}")
+    assert ".tmp-" not in err and err.count("\n") == 1
