@@ -31,7 +31,7 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
              len(summary.done), len(summary.failed), len(summary.skipped), summary.seconds, stages, summary.results)
     for job_id in summary.failed:
         log.error("job %s failed (its row in %s names the error and the log)", job_id, summary.results)
-    return 1 if summary.failed else 0
+    return 1 if summary.failed or summary.busy else 0
 
 
 #: subcommands whose modules are imported only when that subcommand runs (the profiler imports torch)

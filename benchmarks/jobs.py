@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from benchmarks.jobfolder import hold
 from benchmarks.results import DRONES, PREDICTION_COLUMNS, RANGES, range_name
 from benchmarks.suite import JobSpec
 from datamodules.atomic import atomic_write
@@ -85,16 +86,17 @@ def run_job(job: JobSpec) -> dict[str, Any]:
     Path(job.job_dir).mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     row = base_row(job)
-    if job.kind == "model":
-        row.update(_train_and_test(job))
-    elif job.kind == "constant":
-        row.update(_constant(job))
-    elif job.kind == "profile":
-        from benchmarks.profiler import profile_model
+    with hold(job.job_dir):  # the folder is this job's while it runs (benchmarks.jobfolder)
+        if job.kind == "model":
+            row.update(_train_and_test(job))
+        elif job.kind == "constant":
+            row.update(_constant(job))
+        elif job.kind == "profile":
+            from benchmarks.profiler import profile_model
 
-        row.update(profile_model(job.model, **job.options))
-    else:
-        raise ValueError(f"unknown job kind {job.kind!r}")
+            row.update(profile_model(job.model, **job.options))
+        else:
+            raise ValueError(f"unknown job kind {job.kind!r}")
     row.update(provenance(job.threads))
     row["wall_time_s"] = time.perf_counter() - start
     return row

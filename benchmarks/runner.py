@@ -4,8 +4,10 @@ Each job runs in its own process (submitit's local executor on one machine, its 
 cluster), so a crash or an out-of-memory kill loses that job alone: its row records the error
 and the path of its log, and the suite goes on. Rows are appended atomically as jobs finish;
 re-running a suite skips the jobs whose row is ``ok`` with the same configuration hash, so an
-interrupted run loses nothing (``rerun=True`` forces every job again). Profiling jobs run last,
-one at a time, so their timings do not share the cores with training.
+interrupted run loses nothing (``rerun=True`` forces every job again). A job that runs again finds
+its folder cleared (the earlier run moved aside, :mod:`benchmarks.jobfolder`), and a job still running
+in its folder (orphaned by a killed runner) is never started twice. Profiling jobs run last, one at a
+time, so their timings do not share the cores with training.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from benchmarks.jobfolder import JobFolderBusy, clear_for_rerun
 from benchmarks.jobs import base_row, run_job
 from benchmarks.register import register_job_weights
 from benchmarks.results import append_rows, read_results
@@ -38,6 +41,7 @@ class RunSummary:
     done: list[str] = field(default_factory=list)
     failed: list[str] = field(default_factory=list)
     skipped: list[str] = field(default_factory=list)
+    busy: list[str] = field(default_factory=list)  #: not started: a job still runs in their folder
     seconds: float = 0.0
     stages: dict[str, float] = field(default_factory=dict)
 
@@ -158,6 +162,13 @@ def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary
     while pending or running:
         while pending and len(running) < parallel:
             job = pending.pop(0)
+            try:
+                clear_for_rerun(job.job_dir)  # an earlier run's files go aside; a live one stops this job
+            except JobFolderBusy as error:
+                summary.busy.append(job.job_id)
+                log.error("%s %s not started: %s", _progress(summary, len(running), len(pending), start),
+                          job.job_id, error)
+                continue
             handle = make_executor(suite, job, kind).submit(run_job, job)
             running[job.job_id] = (job, handle)
             log.info("%s started %s", _progress(summary, len(running), len(pending), start), job.job_id)

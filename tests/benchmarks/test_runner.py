@@ -19,7 +19,7 @@ SUITES = [pytest.param(path, marks=pytest.mark.slow) if path.stem == "paper" els
 SPLIT = {"train": ["sim11-0000-avata"], "val": ["sim11-0001-m300"], "test": ["sim11-0002-mavic2"]}
 
 
-def _write_suite(path: Path, **changes) -> Path:
+def write_suite(path: Path, **changes) -> Path:
     suite = {
         "name": "tiny",
         "out": str(path.parent / "out"),
@@ -47,7 +47,7 @@ def _write_suite(path: Path, **changes) -> Path:
 @pytest.mark.slow  # two student trainings in job processes (the mmaud_v1 suite test covers a normal run)
 def test_a_crashed_job_keeps_the_others_rows_and_a_rerun_completes_only_it(labelled_dir, feature_cache, tmp_path):
     kwargs = {"root": str(labelled_dir), "cache": str(feature_cache)}
-    suite = load_suite(_write_suite(tmp_path / "suite.yaml", lr=-1.0, **kwargs))  # Adam refuses lr < 0
+    suite = load_suite(write_suite(tmp_path / "suite.yaml", lr=-1.0, **kwargs))  # Adam refuses lr < 0
     first = run_suite(suite)
     assert first.failed == ["student-by_sequence-s0"] and first.done == ["constant_gt-by_sequence-s0"]
     rows = read_results(suite.results_path)
@@ -58,7 +58,7 @@ def test_a_crashed_job_keeps_the_others_rows_and_a_rerun_completes_only_it(label
     assert constant["E_ideal"] > 0 and constant["E_ideal"] == pytest.approx(constant["E_dark"])
     assert constant["n_test_sequences"] == 1 and constant["git_commit"]
 
-    fixed = load_suite(_write_suite(tmp_path / "suite.yaml", **kwargs))
+    fixed = load_suite(write_suite(tmp_path / "suite.yaml", **kwargs))
     second = run_suite(fixed)
     assert second.skipped == ["constant_gt-by_sequence-s0"] and second.done == ["student-by_sequence-s0"]
     rows = read_results(fixed.results_path)
@@ -73,12 +73,12 @@ def test_a_crashed_job_keeps_the_others_rows_and_a_rerun_completes_only_it(label
 def test_suite_errors_name_the_key(tmp_path, labelled_dir):
     base = {"root": str(labelled_dir), "cache": str(tmp_path / "cache")}
     with pytest.raises(SuiteError, match="unknown model 'bogus'; known models: .*student"):
-        load_suite(_write_suite(tmp_path / "a.yaml", models=[{"model": "bogus"}], **base))
+        load_suite(write_suite(tmp_path / "a.yaml", models=[{"model": "bogus"}], **base))
     with pytest.raises(SuiteError, match=r"unknown protocol\(s\) \['leaky'\]; known: .*time_blocks"):
-        load_suite(_write_suite(tmp_path / "b.yaml", protocols={"leaky": {}}, **base))
+        load_suite(write_suite(tmp_path / "b.yaml", protocols={"leaky": {}}, **base))
     with pytest.raises(SuiteError, match=r"unknown key\(s\) \['modles'\]"):
-        load_suite(_write_suite(tmp_path / "c.yaml", modles=[], **base))
-    suite = load_suite(_write_suite(tmp_path / "d.yaml", models=[
+        load_suite(write_suite(tmp_path / "c.yaml", modles=[], **base))
+    suite = load_suite(write_suite(tmp_path / "d.yaml", models=[
         {"model": "student", "config": str(REPO / "configs/model/student.yaml"), "args": {"model.bogus_key": 1}}],
         **base))
     with pytest.raises(SuiteError, match="student-by_sequence-s0: its configuration does not parse.*bogus_key"):
@@ -87,19 +87,19 @@ def test_suite_errors_name_the_key(tmp_path, labelled_dir):
 
 @pytest.mark.parametrize("seeds", [[], [0, 0], ["a"], [1.5], None])
 def test_seeds_must_be_a_non_empty_list_of_distinct_integers(tmp_path, seeds):
-    path = _write_suite(tmp_path / "s.yaml", root=str(tmp_path), cache=str(tmp_path / "cache"), seeds=seeds)
+    path = write_suite(tmp_path / "s.yaml", root=str(tmp_path), cache=str(tmp_path / "cache"), seeds=seeds)
     with pytest.raises(SuiteError, match=r"s\.yaml: seeds must be a non-empty list of distinct integers"):
         load_suite(path)
 
 
 def test_a_model_listed_twice_in_one_protocol_is_refused(tmp_path):
     student = {"model": "student", "config": str(REPO / "configs/model/student.yaml")}
-    path = _write_suite(tmp_path / "s.yaml", root=str(tmp_path), cache=str(tmp_path / "cache"),
+    path = write_suite(tmp_path / "s.yaml", root=str(tmp_path), cache=str(tmp_path / "cache"),
                         models=[student, {**student, "budget_note": "longer"}])
     with pytest.raises(SuiteError, match=r"s\.yaml: model 'student' is listed twice for protocol 'by_sequence'"):
         load_suite(path)
     protocols = {"by_sequence": SPLIT, "time_blocks": {}}
-    apart = _write_suite(tmp_path / "t.yaml", root=str(tmp_path), cache=str(tmp_path / "cache"), protocols=protocols,
+    apart = write_suite(tmp_path / "t.yaml", root=str(tmp_path), cache=str(tmp_path / "cache"), protocols=protocols,
                          models=[{**student, "protocols": ["by_sequence"]}, {**student, "protocols": ["time_blocks"]}])
     jobs = expand_jobs(load_suite(apart))
     assert len({j.job_id for j in jobs}) == len(jobs)
