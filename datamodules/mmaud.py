@@ -233,6 +233,7 @@ class MMAUDDataModule(L.LightningDataModule):
         self.skipped: dict[str, int] = {}
         self.purged = 0  #: windows dropped in the purge gaps of time_blocks
         self.drone_counts: dict[str, int] = {}  #: recordings found per drone
+        self.audio_sample_rates: list[float] = []  #: of the recordings indexed (Hz)
 
     @property
     def protocol(self) -> str:
@@ -305,6 +306,10 @@ class MMAUDDataModule(L.LightningDataModule):
             summary[name] = entry
         return summary
 
+    def state_dict(self) -> dict[str, Any]:
+        """Kept in checkpoints: the audio rates trained on (``aaute track`` refuses audio at another)."""
+        return {"audio_sample_rates": list(self.audio_sample_rates)}
+
     @property
     def sequence_paths(self) -> list[Path]:
         """The file or folder of each sequence, in :attr:`sequence_ids` order."""
@@ -333,6 +338,7 @@ class MMAUDDataModule(L.LightningDataModule):
             raise RecordingError(f"{self.hparams.root}: sequence ids are not unique: {listing}; expected one "
                                  f"recording per id (remove the copies)")
         self.drone_counts = dict(Counter(rec.drone or "unknown" for _, rec in recordings))
+        self.audio_sample_rates = sorted({float(r.audio.sample_rate) for _, r in recordings if r.audio is not None})
         by_sequence = self.split_config.protocol == "by_sequence"
         assignment = self._assign_splits(recordings) if by_sequence else ["all"] * len(recordings)
         self.sequences = {name: [] for name in SPLITS}

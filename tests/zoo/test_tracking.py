@@ -343,3 +343,47 @@ def test_csv_lines_are_flushed_one_by_one():
         writer.write(OnlineRow(2.0 + k / 10, np.array([1.0, 2.0, 3.0]), np.array([0.1, 0.2, 0.3]), 1.0))
         assert stream.flushes == k + 2 and stream.getvalue().count("\n") == k + 2  # header, then each row at once
     assert stream.getvalue().splitlines()[1] == "2.000000,1.000000,2.000000,3.000000,0.100000,0.200000,0.300000"
+
+
+def _checkpoint(student_weights, path, **stored):
+    """A Lightning checkpoint of the student with ``stored`` added (DataModule settings and state)."""
+    from zoo.weights.files import read_checkpoint
+
+    state = read_checkpoint(student_weights).state_dict
+    torch.save({"state_dict": {f"net.{key}": value for key, value in state.items()},
+                "hyper_parameters": {"net": "student", "net_kwargs": {}, "alpha": 1.0}, **stored}, path)
+    return path
+
+
+def test_audio_at_another_rate_than_the_models_is_refused(student_weights, tmp_path, capsys, monkeypatch):
+    from scipy.io import wavfile
+
+    from zoo.cli import main
+
+    ckpt = _checkpoint(student_weights, tmp_path / "student.ckpt", MMAUDDataModule={"audio_sample_rates": [48000.0]})
+    wav = tmp_path / "phone.wav"
+    wavfile.write(wav, 16000, np.zeros((16000 * 3, 4), dtype=np.int16))  # 16 kHz for a model of 48 kHz audio
+    out = tmp_path / "track.csv"
+    for model in (["--ckpt_path", str(ckpt)], ["--weights", str(ckpt)]):
+        code = main(["track", *model, "--audio", str(wav), "--out", str(out)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and not out.exists()
+        assert f"{wav}: audio at 16000 Hz, but model 'student' was trained on 48000 Hz audio" in err[0]
+    monkeypatch.setattr("sys.stdin", io.TextIOWrapper(io.BytesIO(b"\x00" * 8 * 48200 * 3)))
+    code = main(["track", "--ckpt_path", str(ckpt), "--audio", "-", "--channels", "4", "--rate", "48200"])
+    assert code == 0  # within 1 %: a sound card's clock
+
+
+def test_the_expected_rate_comes_from_the_training_data_its_reader_or_the_recipe(student_weights, tmp_path,
+                                                                              recording_path):
+    from datamodules.mmaud import MMAUDDataModule
+
+    data = MMAUDDataModule(root=str(recording_path), split={"test": [recording_path.stem]}, inputs={},
+                           test_lights=["ideal"])
+    data.prepare_data()
+    assert data.state_dict() == {"audio_sample_rates": [48000.0]}  # what Lightning keeps in checkpoints
+    read_at = _checkpoint(student_weights, tmp_path / "a.ckpt",
+                          datamodule_hyper_parameters={"reader_options": {"sample_rate": 46080}})
+    assert load_tracking_model(ckpt_path=read_at).sample_rate == 46080
+    assert load_tracking_model(weights=student_weights).sample_rate is None  # the aaute recipe takes any rate
+    assert load_tracking_model(weights=student_weights, recipe="avfdti").sample_rate == 48000

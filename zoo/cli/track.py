@@ -58,6 +58,20 @@ def open_source(audio: str, *, channels: int | None = None, rate: float | None =
     return RecordingSource(path, realtime=realtime)
 
 
+RATE_TOLERANCE = 0.01  #: audio more than 1 % off the model's rate is refused
+
+
+def check_rate(source_name: str, rate: float, model_name: str, expected: float | None) -> None:
+    """Refuse audio whose sample rate is more than :data:`RATE_TOLERANCE` off the model's (where known).
+
+    Raises:
+        ConfigError: naming the source, its rate and the expected one.
+    """
+    if expected and abs(rate / expected - 1.0) > RATE_TOLERANCE:
+        raise ConfigError(f"{source_name}: audio at {rate:g} Hz, but model {model_name!r} was trained on "
+                          f"{expected:g} Hz audio (within {RATE_TOLERANCE:.0%}); resample it to {expected:g} Hz first")
+
+
 def run_track(args: argparse.Namespace) -> int:
     """``aaute track``: track, write the rows, print the report to stderr."""
     import torch
@@ -70,6 +84,7 @@ def run_track(args: argparse.Namespace) -> int:
     source = open_source(args.audio, channels=args.channels, rate=args.rate, sample_format=args.format,
                          mic_positions=args.mic_positions, t0=args.t0, stall_timeout=args.stall_timeout,
                          realtime=args.realtime)
+    check_rate(source.name, source.sample_rate, model.name, model.sample_rate)
     log.info("tracking %s (%d channels, %g Hz; microphones from %s) with %s from %s: recipe %s, %g s windows, "
              "lag %g s", source.name, source.channels, source.sample_rate, source.mic_source, model.name,
              model.source, model.recipe.name, model.window_seconds, args.lag)

@@ -65,6 +65,7 @@ class TrackingModel:
     recipe: MelRecipe
     window_seconds: float
     source: str
+    sample_rate: float | None = None  #: the audio rate it was trained at (Hz), where known
 
 
 def _data_settings(path: Path) -> dict[str, Any]:
@@ -76,7 +77,8 @@ def _data_settings(path: Path) -> dict[str, Any]:
     except AauteError:
         return {}
     settings = stored.get("datamodule_hyper_parameters") if isinstance(stored, dict) else None
-    return dict(settings) if isinstance(settings, dict) else {}
+    state = stored.get("MMAUDDataModule") if isinstance(stored, dict) else None  # its state_dict()
+    return {**(settings if isinstance(settings, dict) else {}), **(state if isinstance(state, dict) else {})}
 
 
 def load_tracking_model(ckpt_path: str | Path | None = None, weights: str | Path | None = None,
@@ -107,7 +109,8 @@ def load_tracking_model(ckpt_path: str | Path | None = None, weights: str | Path
         contents, entry = resolve_weights(None, weights, offline)
         net = build_net(contents, None, None, entry)
         name, source = net.model_name, str(contents.path)
-        data = {"inputs": dict(contents.inputs or (entry.inputs if entry else {}))}
+        data = {**(_data_settings(contents.path) if contents.kind == "lightning" else {}),
+                "inputs": dict(contents.inputs or (entry.inputs if entry else {}))}
     inputs = dict(getattr(net, "inputs", {}))
     supported = ", ".join(sorted(MEL_RECIPES))
     if set(inputs) != {"audio_mel"}:
@@ -126,7 +129,11 @@ def load_tracking_model(ckpt_path: str | Path | None = None, weights: str | Path
         log.warning("%s was trained on the original newest-first chunk order; aaute track uses the continuous "
                     "causal window", source)
     seconds = float(window_seconds if window_seconds is not None else data.get("window_seconds", 2.0))
-    return TrackingModel(net.eval(), name, mel, seconds, source)
+    # the rate of its training audio, else the one its data was read at, else its recipe's mel filters
+    rates = data.get("audio_sample_rates") or []
+    read_at = (data.get("reader_options") or {}).get("sample_rate")
+    rate = rates[0] if len(rates) == 1 else read_at or mel.mel_sample_rate
+    return TrackingModel(net.eval(), name, mel, seconds, source, float(rate) if rate else None)
 
 
 # ============================================================================================ writers
