@@ -151,3 +151,44 @@ def test_smooth_never_writes_over_its_input_and_asks_before_replacing(tmp_path, 
     assert tree_hashes(tmp_path) == before
     assert main(["smooth", str(src), str(dst), "--overwrite"]) == 0
     assert dst.read_text().startswith("timestamp,x,y,z,std_x")
+
+
+def test_smooth_on_a_benchmark_predictions_file_smooths_each_flight_and_light_apart(tmp_path, capsys):
+    import pandas as pd
+
+    rng = np.random.default_rng(0)
+    t = 100.0 + np.arange(40) * 0.1
+    parts = []
+    for sequence_id, offset in (("sim0_0001", 0.0), ("sim0_0002", 50.0)):
+        for light, shift in (("ideal", 0.0), ("dark", 20.0)):  # the same times in both lights
+            xyz = offset + shift + rng.normal(0, 0.5, (t.size, 3))
+            parts.append(pd.DataFrame({"sequence_id": sequence_id, "recording_id": sequence_id, "drone": "avata",
+                                       "light": light, "timestamp": t, "x": xyz[:, 0], "y": xyz[:, 1],
+                                       "z": xyz[:, 2]}))
+    predictions = pd.concat(parts, ignore_index=True)
+    src = tmp_path / "predictions.csv"
+    predictions.to_csv(src, index=False)
+    dst = tmp_path / "smoothed.csv"
+    assert main(["smooth", str(src), str(dst)]) == 0
+    out = pd.read_csv(dst)
+    assert list(out.columns[:3]) == ["sequence_id", "light", "timestamp"] and len(out) == len(predictions)
+    for (sequence_id, light), rows in predictions.groupby(["sequence_id", "light"]):
+        alone = tmp_path / f"{sequence_id}_{light}.csv"
+        rows[["timestamp", "x", "y", "z"]].to_csv(alone, index=False)
+        assert main(["smooth", str(alone), str(tmp_path / f"{sequence_id}_{light}_smoothed.csv")]) == 0
+        expected = pd.read_csv(tmp_path / f"{sequence_id}_{light}_smoothed.csv")
+        got = out[(out["sequence_id"] == sequence_id) & (out["light"] == light)]
+        np.testing.assert_allclose(got[["x", "y", "z", "std_x"]].to_numpy(), expected[["x", "y", "z", "std_x"]])
+    capsys.readouterr()
+
+    plain = tmp_path / "fused.csv"  # the same rows without the columns that tell the tracks apart
+    predictions[["timestamp", "x", "y", "z"]].to_csv(plain, index=False)
+    assert main(["smooth", str(plain), str(tmp_path / "fused_smoothed.csv")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "fused.csv: timestamp 100.0 repeated on data row 41" in err[0]
+    assert "need the columns sequence_id, light" in err[0]
+    twice = predictions.iloc[[0, 1, 1, 2]]
+    twice.to_csv(src, index=False)
+    assert main(["smooth", str(src), str(dst), "--overwrite"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "repeated on data row 3 in track sequence_id=sim0_0001, light=ideal" in err[0]

@@ -1,4 +1,8 @@
-"""``aaute smooth``: smooth a track CSV (offline, causal or fixed-lag) and add per-axis standard deviations."""
+"""``aaute smooth``: smooth a track CSV (offline, causal or fixed-lag) and add per-axis standard deviations.
+
+A file of several tracks (a benchmark's ``predictions.csv``: flights x lights) is smoothed one
+``(sequence_id, light)`` track at a time, and its output keeps those columns.
+"""
 
 from __future__ import annotations
 
@@ -22,9 +26,9 @@ def _cmd_smooth(args: argparse.Namespace) -> int:
         ROBUST_PRESETS,
         fit_robust_hyperparameters,
         make_smoother,
-        read_track_csv,
+        read_tracks_csv,
         smooth_online,
-        write_smoothed_csv,
+        write_smoothed_tracks,
     )
 
     check_output(args.src, args.dst, args.overwrite)
@@ -36,27 +40,32 @@ def _cmd_smooth(args: argparse.Namespace) -> int:
         options["backend"] = args.backend
     if args.horizon is not None:
         options["horizon"] = args.horizon
-    timestamps, xyz = read_track_csv(args.src)
+    parts = read_tracks_csv(args.src)  # one per (sequence_id, light) of a benchmark's predictions.csv
     if args.lag is not None:
         preset = ROBUST_PRESETS[args.preset]
-        if args.fit:  # learned offline on this track's positions, then run online
-            fitted = fit_robust_hyperparameters([(timestamps, xyz)], preset).hyperparameters
+        if args.fit:  # learned offline on these tracks' positions, then run online
+            fitted = fit_robust_hyperparameters([(p.timestamps, p.xyz) for p in parts], preset).hyperparameters
             preset = replace(fitted, std_scale=preset.std_scale)
-        track = smooth_online(timestamps, xyz, preset, lag=args.lag)
+        tracks = [smooth_online(p.timestamps, p.xyz, preset, lag=args.lag) for p in parts]
     else:
-        track = make_smoother(args.preset, **options).smooth(timestamps, xyz)
-    write_smoothed_csv(args.dst, track)
-    log.info("smoothed %d points of %s (%s) -> %s", len(track), args.src, track.backend, args.dst)
+        smoother = make_smoother(args.preset, **options)
+        tracks = [smoother.smooth(p.timestamps, p.xyz) for p in parts]
+    write_smoothed_tracks(args.dst, [(p.keys, track) for p, track in zip(parts, tracks, strict=True)])
+    points = sum(len(track) for track in tracks)
+    log.info("smoothed %d points of %s in %d track(s) (%s) -> %s", points, args.src, len(tracks), tracks[0].backend,
+             args.dst)
+    track = tracks[0]
     if track.weights is not None:
         hp = track.hyperparameters
+        weights = np.concatenate([t.weights for t in tracks])
         mode = f"lag {args.lag:g} s" if args.lag is not None else "offline"
         sys.stdout.write(f"{args.preset} smoother ({mode}): "
                          f"degrees of freedom {hp.dof:.3g}{' (fitted)' if args.fit else ''}, "
-                         f"{np.mean(track.weights < 0.5):.1%} of {len(track)} frames down-weighted "
-                         f"(weight < 0.5), median weight {np.median(track.weights):.2f}\n")
-    beyond = int(track.beyond_horizon.sum())
+                         f"{np.mean(weights < 0.5):.1%} of {points} frames down-weighted "
+                         f"(weight < 0.5), median weight {np.median(weights):.2f}\n")
+    beyond = sum(int(t.beyond_horizon.sum()) for t in tracks)
     if beyond:
-        log.info("%d of %d points lie beyond the %g s horizon", beyond, len(track), track.horizon)
+        log.info("%d of %d points lie beyond the %g s horizon", beyond, points, track.horizon)
     return 0
 
 

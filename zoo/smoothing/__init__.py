@@ -51,12 +51,16 @@ from zoo.smoothing.robust import (
 from zoo.smoothing.track import (
     SMOOTHED_COLUMNS,
     TRACK_COLUMNS,
+    TRACK_KEYS,
     Hyperparameters,
     SmoothedTrack,
     Smoother,
     TrackFileError,
+    TrackPart,
     read_track_csv,
+    read_tracks_csv,
     write_smoothed_csv,
+    write_smoothed_tracks,
 )
 
 __all__ = [
@@ -71,6 +75,7 @@ __all__ = [
     "ROBUST_PRESETS",
     "SMOOTHED_COLUMNS",
     "TRACK_COLUMNS",
+    "TRACK_KEYS",
     "FitReport",
     "GPHyperparameters",
     "GPSmoother",
@@ -83,15 +88,18 @@ __all__ = [
     "SmoothedTrack",
     "Smoother",
     "TrackFileError",
+    "TrackPart",
     "calibration_factor",
     "coverage",
     "fit_hyperparameters",
     "fit_robust_hyperparameters",
     "make_smoother",
     "read_track_csv",
+    "read_tracks_csv",
     "smooth_detected",
     "smooth_online",
     "smooth_predictions",
     "smooth_track_file",
     "write_smoothed_csv",
+    "write_smoothed_tracks",
 ]

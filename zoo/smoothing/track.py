@@ -22,6 +22,8 @@ from datamodules.atomic import atomic_write
 from datamodules.recording import RecordingError
 
 TRACK_COLUMNS = ("timestamp", "x", "y", "z")
+#: columns that tell several tracks of one file apart (a benchmark's ``predictions.csv``: flights x lights)
+TRACK_KEYS = ("sequence_id", "light")
 SMOOTHED_COLUMNS = (*TRACK_COLUMNS, "std_x", "std_y", "std_z")
 #: The torch dtype of every smoothing computation: relative times of long tracks need float64.
 DTYPE = torch.float64
@@ -185,11 +187,34 @@ def read_track_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """Timestamps (N,) and xyz (N, 3) of a ``timestamp,x,y,z`` CSV (MMAUD/TAME convention).
 
     Raises:
-        TrackFileError: unreadable file, missing columns, non-numeric or non-finite values, < 2 rows.
+        TrackFileError: unreadable file, missing columns, non-numeric or non-finite values, < 2 rows,
+            a repeated timestamp, or several tracks (:data:`TRACK_KEYS` columns: use :func:`read_tracks_csv`).
+    """
+    parts = read_tracks_csv(path)
+    if len(parts) > 1:
+        raise TrackFileError(f"{path}: {len(parts)} tracks ({', '.join(TRACK_KEYS)}); expected one")
+    return parts[0].timestamps, parts[0].xyz
+
+
+@dataclass
+class TrackPart:
+    """One track of a track file: its :data:`TRACK_KEYS` values (empty for a single-track file) and its points."""
+
+    keys: dict[str, str]
+    timestamps: np.ndarray
+    xyz: np.ndarray
+
+
+def read_tracks_csv(path: Path) -> list[TrackPart]:
+    """The tracks of a ``timestamp,x,y,z`` CSV, one per value of its :data:`TRACK_KEYS` columns (in file order).
+
+    Raises:
+        TrackFileError: unreadable file, missing columns, non-numeric or non-finite values, < 2 rows, or a
+            timestamp repeated within one track (several tracks in a file without their key columns).
     """
     path = Path(path)
     try:
-        frame = pd.read_csv(path, dtype=str, skipinitialspace=True)
+        frame = pd.read_csv(path, dtype=str, skipinitialspace=True, keep_default_na=False)
     except (OSError, UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as error:
         raise TrackFileError(f"{path}: cannot read a track CSV ({error})") from error
     frame.columns = [str(c).strip() for c in frame.columns]
@@ -209,7 +234,38 @@ def read_track_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
                                  f"non-finite value(s), first on data row {row + 1}: "
                                  f"{frame[column].iloc[row]!r}")
         values[column] = numbers
-    return values["timestamp"], np.stack([values["x"], values["y"], values["z"]], axis=1)
+    xyz = np.stack([values["x"], values["y"], values["z"]], axis=1)
+    keys = [column for column in TRACK_KEYS if column in frame.columns]
+    groups = frame.groupby(keys, sort=False).indices.items() if keys else [((), np.arange(len(frame)))]
+    parts = []
+    for key, rows in groups:
+        named = dict(zip(keys, (key,) if isinstance(key, str) else key, strict=True))
+        t = values["timestamp"][rows]
+        repeated = pd.Series(t).duplicated()
+        if repeated.any():
+            first = int(rows[int(np.flatnonzero(repeated)[0])])
+            where = f" in track {', '.join(f'{k}={v}' for k, v in named.items())}" if named else ""
+            hint = "" if named else f" (several tracks in one file need the columns {', '.join(TRACK_KEYS)})"
+            raise TrackFileError(f"{path}: timestamp {frame['timestamp'].iloc[first].strip()} repeated on data row "
+                                 f"{first + 1}{where}; expected one position per time{hint}")
+        parts.append(TrackPart(named, t, xyz[rows]))
+    return parts
+
+
+def write_smoothed_tracks(path: Path, parts: Sequence[tuple[dict[str, str], SmoothedTrack]],
+                          overwrite: bool = True) -> Path:
+    """Write several smoothed tracks to one CSV atomically: their key columns, then ``timestamp,x,...,std_z``."""
+    path = Path(path)
+    frames = []
+    for keys, track in parts:
+        frame = pd.DataFrame(np.column_stack([track.mean, track.std]), columns=list(SMOOTHED_COLUMNS[1:]))
+        frame.insert(0, "timestamp", [repr(float(v)) for v in track.timestamps])
+        for position, (column, value) in enumerate(keys.items()):
+            frame.insert(position, column, value)
+        frames.append(frame)
+    with atomic_write(path, overwrite) as tmp, open(tmp, "w", newline="") as stream:
+        pd.concat(frames, ignore_index=True).to_csv(stream, index=False, float_format="%.6f", lineterminator="\n")
+    return path
 
 
 def write_smoothed_csv(path: Path, track: SmoothedTrack, overwrite: bool = True) -> Path:
