@@ -1,7 +1,8 @@
 """Pseudo-label recordings on disk: find them, run the teacher (in parallel), store the tracks.
 
 Used by ``aaute label``. Each recording is one job (one process with ``workers > 1``); a failing
-recording is reported and leaves its file untouched, the others go on. Tracks are stored beside
+recording is reported and leaves its file untouched, the others go on; a write-protected recording
+is refused before its teacher runs. Tracks are stored beside
 the sensor data atomically: MCAP recordings get their ``/pseudo_label`` topic replaced
 (:func:`~datamodules.formats.mcap_file.replace_track`); other layouts are refused with a pointer
 to ``aaute convert``.
@@ -11,6 +12,8 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
+import stat
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -67,6 +70,20 @@ def write_pseudo_labels(path: Path, recording: Recording, track: Track) -> Path:
     return replace_track(path, TOPIC_PSEUDO_LABEL, track)
 
 
+def check_writable(path: Path) -> None:
+    """Refuse a write-protected recording file before the teacher runs (it is left exactly as it is).
+
+    Raises:
+        RecordingError: the file has no owner write permission (e.g. mode 444) or this user cannot write it.
+    """
+    if not path.is_file():
+        return
+    mode = stat.S_IMODE(path.stat().st_mode)
+    if not mode & stat.S_IWUSR or not os.access(path, os.W_OK):
+        raise RecordingError(f"{path}: write-protected (mode {mode:o}); its pseudo-labels are not written and it "
+                             f"is left as it is (make it writable with chmod u+w to label it, or use --no-write)")
+
+
 def has_pseudo_labels(recording: Recording) -> bool:
     """Whether the recording already carries a pseudo-label track."""
     return recording.pseudo_labels is not None and len(recording.pseudo_labels) > 0
@@ -85,6 +102,8 @@ def label_one(path: str | Path, config: TeacherConfig | None = None, *, write: b
     outcome = LabelOutcome(path)
     started = time.perf_counter()
     try:
+        if write:
+            check_writable(path)
         recording = open_recording(path, **(reader_options or {}))
         outcome.sequence_id = recording.sequence_id
         if skip_existing and has_pseudo_labels(recording):

@@ -27,6 +27,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import stat
 from collections import OrderedDict
 from collections.abc import Iterator
 from pathlib import Path
@@ -253,6 +254,7 @@ def replace_track(path: str | Path, topic: str, track: Track | None) -> Path:
         _write_track(track_writer, schemas, topic, track)
         track_writer.finish()
         encoded.seek(0)
+    mode = stat.S_IMODE(path.stat().st_mode)
     with atomic_write(path) as tmp, open(path, "rb") as source, open(tmp, "wb") as target:
         writer = RawWriter(target)
         writer.start(profile="ros2", library="aaute")
@@ -262,6 +264,7 @@ def replace_track(path: str | Path, topic: str, track: Track | None) -> Path:
             _copy_messages(make_reader(encoded), writer, set())
         _copy_messages(make_reader(source, validate_crcs=True), writer, drop)
         writer.finish()
+        os.chmod(tmp, mode)  # the rewritten file keeps the recording's permissions
     return path
 
 

@@ -77,3 +77,19 @@ def test_bad_recording_fails_alone(recordings, tmp_path):
     assert sum(e is None for e in errors.values()) == 3
     assert broken.read_bytes() == b"not an mcap file"
     assert main(["label", str(broken)]) == 1
+
+
+def test_a_write_protected_recording_is_refused_and_left_as_it_was(recordings, caplog):
+    import hashlib
+    import os
+
+    protected, writable = sorted(recordings.glob("*.mcap"))[:2]
+    before = hashlib.sha256(protected.read_bytes()).hexdigest()
+    protected.chmod(0o444)
+    writable.chmod(0o640)
+    assert main(["label", str(protected), str(writable)]) == 1
+    assert f"{protected}: write-protected (mode 444)" in caplog.text
+    assert hashlib.sha256(protected.read_bytes()).hexdigest() == before
+    assert os.stat(protected).st_mode & 0o777 == 0o444  # not replaced by a writable copy
+    assert read_mcap(writable).pseudo_labels is not None  # the others are labelled
+    assert os.stat(writable).st_mode & 0o777 == 0o640  # and keep their permissions
