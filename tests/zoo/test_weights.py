@@ -98,6 +98,33 @@ def test_a_truncated_file_is_named_as_such(tmp_path):
         read_checkpoint(tmp_path / "absent.pt")
 
 
+NOT_TORCH = {
+    "lfs.pt": (b"version https://git-lfs.github.com/spec/v1\noid sha256:" + b"a" * 64 + b"\nsize 4096512\n",
+               "a Git LFS pointer to 4,096,512 bytes, not the weights themselves (fetch them with 'git lfs pull')"),
+    "page.pt": (b"\n<!DOCTYPE html>\n<html><head><title>Sign in</title></head></html>\n", "an HTML page"),
+    "notes.pt": (b"epoch 12: val_loss 0.41\n", "a text file (it starts 'epoch 12: val_loss 0.41')"),
+    "noise.pt": (bytes([246, 17, 3, 200, 9, 1, 2, 3]) * 64, "not a torch file (it starts with bytes f6 11 03 c8"),
+    "empty.pt": (b"", "an empty file"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(NOT_TORCH))
+def test_a_file_that_is_not_a_torch_archive_says_what_it_is(tmp_path, capsys, name):
+    content, what = NOT_TORCH[name]
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(CheckpointError, match="expected weights written by torch.save") as error:
+        read_checkpoint(path)
+    assert str(error.value).startswith(f"{path}: {what}") and "\n" not in str(error.value)
+    with pytest.raises(CheckpointError, match=f"{path}: "):
+        load_pretrained("student", path)
+    for argv in (["import-checkpoint", "--format", "aaute", str(path), "--out", str(tmp_path / "out.pt")],
+                 ["track", "--weights", str(path), "--audio", "-", "--channels", "4", "--rate", "48000"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"aaute: error: {path}: {what}") and err.count("\n") == 1
+
+
 def test_a_state_dict_that_does_not_fit_lists_names_and_shapes(tmp_path):
     state = get_model("student").state_dict()
     state["head.5.weight"] = torch.zeros(7, 128)

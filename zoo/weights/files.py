@@ -66,17 +66,55 @@ def file_sha256(path: str | Path) -> str:
     return digest.hexdigest()
 
 
+ZIP_MAGIC = b"PK\x03\x04"  #: torch.save's archive (since torch 1.6)
+PICKLE_PROTOCOL = 0x80  #: first byte of torch's legacy (pre-1.6) format, a pickle of protocol >= 2
+LFS_POINTER = b"version https://git-lfs.github.com/spec/"
+
+
+def not_torch_file(path: Path) -> str | None:
+    """What ``path`` is when its first bytes show it is not a torch file (``None``: it may be one).
+
+    Tells apart the usual mistakes: a Git LFS pointer (the repository was cloned without ``git lfs``),
+    an HTML page (a download that returned a web page), another text file, other bytes.
+    """
+    with open(path, "rb") as handle:
+        head = handle.read(512)
+    if head.startswith(ZIP_MAGIC) or head[:1] == bytes([PICKLE_PROTOCOL]):
+        return None
+    if not head:
+        return "an empty file"
+    if head.startswith(LFS_POINTER):
+        size = re.search(rb"\nsize (\d+)", head)
+        return (f"a Git LFS pointer{f' to {int(size.group(1)):,} bytes' if size else ''}, not the weights "
+                f"themselves (fetch them with 'git lfs pull')")
+    lowered = head.lstrip().lower()
+    if lowered.startswith((b"<!doctype html", b"<html", b"<?xml", b"<head", b"<body")):
+        return "an HTML page (a download that returned a web page instead of the file?)"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        text = None
+    if text is not None and all(c.isprintable() or c in "\r\n\t" for c in text.rstrip("\x00")):
+        first = text.strip().splitlines()[0][:60] if text.strip() else ""
+        return f"a text file (it starts {first!r})"
+    return f"not a torch file (it starts with bytes {head[:8].hex(' ')})"
+
+
 def read_file(path: str | Path) -> Any:
     """``torch.load(path, weights_only=True)`` on the CPU, with one-line errors naming the file.
 
     Raises:
         FileNotFoundError: no such file.
         UnsafeCheckpointError: the pickle needs code (a class or function outside torch's allow-list).
-        CheckpointError: a truncated, corrupt or non-torch file.
+        CheckpointError: a truncated, corrupt or non-torch file (a Git LFS pointer, an HTML page or another
+            text file is named as such: :func:`not_torch_file`).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such weights file")
+    what = not_torch_file(path)
+    if what is not None:
+        raise CheckpointError(f"{path}: {what}; expected weights written by torch.save (a zip archive)")
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as error:
@@ -91,7 +129,7 @@ def read_file(path: str | Path) -> Any:
                 f"are read, so a file holding a pickled model or custom objects must be re-saved as a state dict "
                 f"(torch.save(model.state_dict(), ...)) by the code that made it") from None
         raise CheckpointError(f"{path}: not a readable torch file ({text.splitlines()[0][:200]})") from None
-    except (RuntimeError, EOFError, zipfile.BadZipFile, KeyError, ValueError, OSError) as error:
+    except (RuntimeError, EOFError, zipfile.BadZipFile, KeyError, IndexError, ValueError, OSError) as error:
         first = str(error).splitlines()[0].split(". ")[0][:160] if str(error) else type(error).__name__
         raise CheckpointError(f"{path}: truncated or corrupt weights file, expected a complete torch.save archive "
                               f"({first})") from None
