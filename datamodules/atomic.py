@@ -12,6 +12,7 @@ from __future__ import annotations
 import fcntl
 import logging
 import os
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -69,6 +70,28 @@ def _process_start_time() -> float:
         return time.time() - uptime + ticks / os.sysconf("SC_CLK_TCK")
     except (OSError, ValueError, IndexError):
         return time.time()
+
+
+def check_output_folder(folder: str | Path, what: str = "the output folder") -> Path:
+    """Create ``folder`` if needed and prove it writable (a probe file), before any work is done for it.
+
+    Raises:
+        NotADirectoryError: ``folder`` is an existing file (a folder was expected).
+        PermissionError: ``folder`` cannot be created or written (the message names it).
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise NotADirectoryError(f"{folder}: is a file; {what} must be a folder (new or existing)")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        handle, probe = tempfile.mkstemp(prefix=".aaute-write-check-", dir=folder)
+    except NotADirectoryError:
+        raise NotADirectoryError(f"{folder}: a part of this path is a file; {what} must be a folder") from None
+    except OSError as error:
+        raise PermissionError(f"{folder}: cannot write into {what} ({error.strerror})") from None
+    os.close(handle)
+    os.unlink(probe)
+    return folder
 
 
 @contextmanager

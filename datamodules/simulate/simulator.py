@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from datamodules.atomic import check_output_folder
 from datamodules.errors import ConfigError
 from datamodules.formats.mcap_file import read_mcap, write_mcap
 from datamodules.recording import (
@@ -227,8 +228,7 @@ def simulate_dataset(
     if workers < 1:
         raise ConfigError(f"workers (--workers) must be at least 1, got {workers}")
     config.check()
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = check_output_folder(out_dir, "the simulator's output folder (--out)")  # before any simulating
     paths = [recording_path(out_dir, seed, i) for i in range(sequences)]
     todo = [(p, config, seed, i) for i, p in enumerate(paths) if not (p.exists() and
                                                                        _existing_matches(p, config, seed, i))]

@@ -143,6 +143,10 @@ def duplicate_in_source(good: Path, out: Path) -> Path:
     return out  # the folder itself: converting it into itself
 
 
+def a_recording(good: Path, out: Path) -> Path:
+    return good  # an existing file where a folder is expected
+
+
 MakeBad = Callable[[Path, Path], Path]
 
 #: (id, maker, command (BAD: the bad file, DIR: the folder of copies, OUT: a fresh folder), exit code, words)
@@ -177,6 +181,8 @@ CASES: list[tuple[str, MakeBad, list[str], int, list[str]]] = [
      ["--sequences", "at least 1", "got 0"]),
     ("simulate_zero_workers", duplicate_in_source, ["simulate", "--out", "OUT", "--workers", "0"], 2,
      ["--workers", "at least 1", "got 0"]),
+    ("simulate_into_a_file", a_recording, ["simulate", "--out", "BAD", "--seconds", "1", "--sequences", "1"],
+     2, [".mcap: is a file; the simulator's output folder (--out) must be a folder"]),
 ]
 
 
@@ -380,3 +386,27 @@ def test_a_wrong_channel_count_for_a_bag_is_named_as_such(given, words, tmp_path
     assert len(lines) == 1 and "mavic2.bag /audio/audio (parameters)" in lines[0], lines
     for word in words:
         assert word in lines[0], (word, lines[0])
+
+
+def test_simulate_into_a_folder_it_cannot_write_says_so_before_simulating(tmp_path, monkeypatch, capsys):
+    import os
+
+    import datamodules.simulate.simulator as simulator
+
+    out = tmp_path / "locked"
+    out.mkdir()
+    real_open = os.open
+
+    def read_only(path, *args, **kwargs):  # what a folder of mode 555 does to a user other than root
+        if str(path).startswith(str(out)):
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", read_only)
+    simulated = []
+    monkeypatch.setattr(simulator, "simulate_recording", lambda *args, **kwargs: simulated.append(args))
+    assert main(["simulate", "--out", str(out), "--seconds", "1", "--sequences", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"aaute: error: {out}: cannot write into the simulator's output folder (--out) (Permission "
+                   f"denied) (--debug for the traceback)\n")
+    assert simulated == [] and list(out.iterdir()) == []
