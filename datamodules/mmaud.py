@@ -255,6 +255,7 @@ class MMAUDDataModule(L.LightningDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         """Index (if not done yet) and check that the splits ``stage`` needs have windows."""
+        stage = getattr(stage, "value", stage)  # Lightning passes its TrainerFn enum: "fit", not "TrainerFn.FITTING"
         if not self.sequences:
             self._index()  # other ranks: the caches exist by now, only the index is rebuilt
         self._require(stage, STAGE_SPLITS.get(stage or "", ()))

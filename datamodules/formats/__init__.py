@@ -71,7 +71,8 @@ def detect_layout(path: str | Path) -> str:
     if inside:
         names = ", ".join(str(p.relative_to(path)) for p in inside[:3]) + (", ..." if len(inside) > 3 else "")
         raise RecordingError(f"{path}: not a known recording layout but a folder of {len(inside)} recordings "
-                             f"({names}); open one of them, or list them with discover_recordings")
+                             f"({names}); give one of them here (commands that take a data root, such as "
+                             f"'aaute info' or --data.root, read them all)")
     raise RecordingError(f"{path}: folder is not a known recording layout; expected {EXPECTED}")
 
 

@@ -592,6 +592,6 @@ def open_derived(path: str | Path, **options: Any) -> Recording:
         raise RecordingError(
             f"{path}: derived npy root with {len(sequences)} sequences ({', '.join(sequences[:5])}"
             f"{', ...' if len(sequences) > 5 else ''}); open one sequence folder "
-            f"({audio_folder(path).name}/<seq>) or list them with discover_recordings"
+            f"({audio_folder(path).name}/<seq>), or give the root where a data root is expected (--data.root)"
         )
     raise RecordingError(f"{path}: not a derived npy sequence (expected <root>/{AUDIO_FOLDERS[0]}/<seq>/<idx>.npy)")

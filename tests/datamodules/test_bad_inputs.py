@@ -181,6 +181,8 @@ CASES: list[tuple[str, MakeBad, list[str], int, list[str]]] = [
      ["--sequences", "at least 1", "got 0"]),
     ("simulate_zero_workers", duplicate_in_source, ["simulate", "--out", "OUT", "--workers", "0"], 2,
      ["--workers", "at least 1", "got 0"]),
+    ("audio_of_a_folder", duplicate_in_source, ["audio", "DIR", "--out", "OUT/a.wav"], 2,
+     ["not a known recording layout but a folder of 3 recordings", "give one of them here", "--data.root"]),
     ("simulate_into_a_file", a_recording, ["simulate", "--out", "BAD", "--seconds", "1", "--sequences", "1"],
      2, [".mcap: is a file; the simulator's output folder (--out) must be a folder"]),
 ]
@@ -208,7 +210,7 @@ def test_bad_input_gives_one_line_and_changes_nothing(case, simulated_dir, tmp_p
     assert len(lines) == 1, (captured.out, captured.err)
     for word in words:
         assert word in lines[0], (word, lines[0])
-    assert "Traceback" not in captured.err
+    assert "Traceback" not in captured.err and "discover_recordings" not in lines[0]  # no Python on a command line
     assert tree_hashes(data) == before  # nothing of the input changed, nothing was added beside it
     assert not out.exists() or not any(out.rglob("*.mcap"))  # nothing written for a refused input
 

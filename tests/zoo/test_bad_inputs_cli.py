@@ -192,3 +192,18 @@ def test_smooth_on_a_benchmark_predictions_file_smooths_each_flight_and_light_ap
     assert main(["smooth", str(src), str(dst), "--overwrite"]) == 2
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and "repeated on data row 3 in track sequence_id=sim0_0001, light=ideal" in err[0]
+
+
+def test_fit_on_a_folder_of_one_recording_says_which_split_is_empty_in_plain_words(labelled_dir, tmp_path, capsys):
+    data = tmp_path / "data"
+    data.mkdir()
+    first = sorted(labelled_dir.glob("*.mcap"))[0]
+    shutil.copy(first, data / first.name)
+    args = ["fit", "--config", str(CONFIG), "--data.root", str(data), "--data.split", "{protocol: by_sequence}",
+            "--data.window_seconds", "1.0", "--data.cache_dir", str(tmp_path / "cache"),
+            "--trainer.default_root_dir", str(tmp_path / "runs"), "--trainer.fast_dev_run", "true",
+            "--trainer.enable_progress_bar", "false"]
+    assert main(args) == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("aaute: error:")]
+    assert len(lines) == 1 and lines[0].startswith("aaute: error: cannot fit: split"), lines
+    assert "TrainerFn" not in lines[0]
