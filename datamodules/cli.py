@@ -14,6 +14,7 @@ import argparse
 import logging
 import os
 import sys
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -298,6 +299,22 @@ def debug_requested(argv: Sequence[str]) -> bool:
     return "--debug" in argv or os.environ.get("AAUTE_DEBUG", "").strip().lower() in ("1", "true", "yes")
 
 
+#: the project's own packages: their warnings are always shown
+PROJECT_MODULES = r"(zoo|datamodules|benchmarks)(\.|$)"
+
+
+def quiet_third_party_deprecations() -> None:
+    """Hide deprecation warnings raised inside libraries (``torch.jit.script is deprecated``, ...).
+
+    The user of the command cannot act on them; the project's own warnings, and everything under
+    ``--debug`` or an explicit ``PYTHONWARNINGS``, stay visible.
+    """
+    if os.environ.get("PYTHONWARNINGS"):
+        return
+    for category in (DeprecationWarning, PendingDeprecationWarning, FutureWarning):
+        warnings.filterwarnings("ignore", category=category, module=rf"(?!{PROJECT_MODULES})")
+
+
 def report_error(error: BaseException) -> None:
     """Print a project error as one line on stderr (its message names the file and what was expected)."""
     message = " ".join(str(error).split()) or type(error).__name__
@@ -313,6 +330,8 @@ def run_guarded(argv: Sequence[str] | None, run: Callable[[list[str], bool], int
     from_sys_argv = argv is None
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = debug_requested(argv)
+    if not debug:
+        quiet_third_party_deprecations()
     argv = [word for word in argv if word != "--debug"]
     if from_sys_argv:
         sys.argv[1:] = argv

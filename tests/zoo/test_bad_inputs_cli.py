@@ -207,3 +207,20 @@ def test_fit_on_a_folder_of_one_recording_says_which_split_is_empty_in_plain_wor
     lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("aaute: error:")]
     assert len(lines) == 1 and lines[0].startswith("aaute: error: cannot fit: split"), lines
     assert "TrainerFn" not in lines[0]
+
+
+def test_the_command_keeps_third_party_deprecation_noise_off_the_console(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[2]
+    src = tmp_path / "track.csv"
+    src.write_text("timestamp,x,y,z\n" + "".join(f"{100 + 0.1 * i:.1f},1,2,3\n" for i in range(20)))
+    env = {key: value for key, value in os.environ.items() if key not in ("PYTHONWARNINGS", "AAUTE_DEBUG")}
+    env["PYTHONPATH"] = str(repo)
+    done = subprocess.run([sys.executable, "-m", "benchmarks.cli", "smooth", str(src), str(tmp_path / "out.csv")],
+                          capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert "Warning" not in done.stderr and "deprecated" not in done.stderr, done.stderr  # gpytorch's torch.jit
+    assert done.stderr.startswith("INFO aaute: smoothed 20 points")
