@@ -364,7 +364,10 @@ def test_audio_at_another_rate_than_the_models_is_refused(student_weights, tmp_p
     wav = tmp_path / "phone.wav"
     wavfile.write(wav, 16000, np.zeros((16000 * 3, 4), dtype=np.int16))  # 16 kHz for a model of 48 kHz audio
     out = tmp_path / "track.csv"
-    for model in (["--ckpt_path", str(ckpt)], ["--weights", str(ckpt)]):
+    exported = tmp_path / "exported"
+    assert main(["export", "--weights", str(ckpt), "--out", str(exported), "--no-onnx"]) == 0  # carries the rate
+    capsys.readouterr()
+    for model in (["--ckpt_path", str(ckpt)], ["--weights", str(ckpt)], ["--weights", str(exported) + ".pt"]):
         code = main(["track", *model, "--audio", str(wav), "--out", str(out)])
         err = capsys.readouterr().err.strip().splitlines()
         assert code == 2 and len(err) == 1 and not out.exists()

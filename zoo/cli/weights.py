@@ -87,6 +87,8 @@ def _cmd_export(args: argparse.Namespace) -> int:
     provenance = {"source": str(contents.path), "kind": contents.kind,
                   **({"weights": entry.name, "sha256": entry.sha256, "data": entry.data, "protocol": entry.protocol,
                       "metrics": entry.metrics} if entry else {}), **contents.metadata.get("provenance", {})}
+    if contents.metadata.get("audio_sample_rates"):  # the rates it was trained at: aaute track checks them
+        provenance["audio_sample_rates"] = contents.metadata["audio_sample_rates"]
     hparams = contents.metadata.get("hyper_parameters")
     if hparams:
         provenance["hyper_parameters"] = {key: hparams.get(key) for key in ("alpha", "loss", "lr")}

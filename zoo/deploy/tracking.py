@@ -109,8 +109,9 @@ def load_tracking_model(ckpt_path: str | Path | None = None, weights: str | Path
         contents, entry = resolve_weights(None, weights, offline)
         net = build_net(contents, None, None, entry)
         name, source = net.model_name, str(contents.path)
-        data = {**(_data_settings(contents.path) if contents.kind == "lightning" else {}),
-                "inputs": dict(contents.inputs or (entry.inputs if entry else {}))}
+        data = {"inputs": dict(contents.inputs or (entry.inputs if entry else {})),
+                "audio_sample_rates": contents.metadata.get("audio_sample_rates")  # a checkpoint's DataModule
+                or contents.metadata.get("provenance", {}).get("audio_sample_rates")}  # an exported file's
     inputs = dict(getattr(net, "inputs", {}))
     supported = ", ".join(sorted(MEL_RECIPES))
     if set(inputs) != {"audio_mel"}:

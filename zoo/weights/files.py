@@ -178,7 +178,8 @@ def parse_contents(path: str | Path, obj: Any) -> CheckpointContents:
         return CheckpointContents(path, "lightning", net_state, str(hparams["net"]),
                                   dict(hparams.get("net_kwargs") or {}), {},
                                   {"hyper_parameters": hparams, "epoch": obj.get("epoch"),
-                                   "global_step": obj.get("global_step")})
+                                   "global_step": obj.get("global_step"),
+                                   "audio_sample_rates": (obj.get("MMAUDDataModule") or {}).get("audio_sample_rates")})
     return CheckpointContents(path, "state_dict", _tensors(path, obj, "a state dict"))
 
 
