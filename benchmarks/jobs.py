@@ -60,8 +60,11 @@ def provenance(threads: int) -> dict[str, Any]:
     except OSError:
         pass
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else ""
+    array = os.environ.get("SLURM_ARRAY_JOB_ID"), os.environ.get("SLURM_ARRAY_TASK_ID")
+    slurm_job_id = f"{array[0]}_{array[1]}" if all(array) else os.environ.get("SLURM_JOB_ID", "")
     return {"git_commit": commit or "unknown", "git_dirty": dirty, "cpu": f"{cpu} ({os.cpu_count()} cores)",
-            "gpu": gpu, "threads": threads,
+            "gpu": gpu, "threads": threads, "node": os.environ.get("SLURMD_NODENAME") or platform.node(),
+            "slurm_job_id": slurm_job_id,
             "versions": f"aaute={aaute};torch={torch.__version__};lightning={lightning.__version__};"
                         f"python={platform.python_version()}"}
 

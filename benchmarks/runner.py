@@ -30,6 +30,10 @@ _EXCEPTION_LINE = re.compile(r"^[A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit)\
 SIMULATE_KEYS = {"sequences", "seconds", "seed", "workers", "scene"}
 
 
+class JobEndedError(RuntimeError):
+    """A job its launcher ended before it returned a result (cancelled, killed at its time limit, ...)."""
+
+
 @dataclass
 class RunSummary:
     """What a suite run did."""
@@ -153,6 +157,15 @@ def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary
             poll_seconds: float = 1.0) -> None:
     """Run ``jobs`` with at most ``parallel`` at once; append each row as its job ends."""
     start = time.perf_counter()
+    if kind == "slurm":  # one array; Slurm keeps the limit and its states drive the progress line
+        from benchmarks.slurm import run_on_slurm
+
+        def finish(job: JobSpec, handle: Any, failure: str | None, columns: dict[str, Any]) -> bool:
+            log.info("%s %s", job.job_id, finish_job(suite, job, handle, kind, summary, failure, columns))
+            return job.job_id in summary.done
+
+        run_on_slurm(suite, jobs, parallel, run_job, finish)
+        return
     pending = list(jobs)
     running: dict[str, tuple[JobSpec, Any]] = {}
     while pending or running:
@@ -165,27 +178,42 @@ def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary
             if not handle.done():
                 continue
             del running[job_id]
-            log_path = _relative(str(handle.paths.stderr), suite.out)
-            try:
-                row = handle.result()
-                row["log_path"] = log_path
-                for key in ("predictions_path", "checkpoint_path"):
-                    row[key] = _relative(row.get(key), suite.out)
-                row["launcher"] = kind
-                summary.done.append(job_id)
-                status = f"ok in {row['wall_time_s']:.0f} s"
-                if row.get("E_ideal") is not None:
-                    status += f", E_ideal {row['E_ideal']:.2f} m"
-            except Exception as error:  # the job's own failure, reported by submitit
-                row = _error_row(job, error, log_path)
-                row["launcher"] = kind
-                summary.failed.append(job_id)
-                status = f"FAILED: {row['error']} (log: {suite.out / log_path})"
-            append_rows(suite.results_path, [row])
+            status = finish_job(suite, job, handle, kind, summary)
             log.info("%s %s %s", _progress(summary, len(running), len(pending), start), job_id, status)
-            register_finished_job(suite, job, row)
         if running:
             time.sleep(poll_seconds)
+
+
+def finish_job(suite: Suite, job: JobSpec, handle: Any, kind: str, summary: RunSummary,
+               failure: str | None = None, columns: dict[str, Any] | None = None) -> str:
+    """Append the row of an ended job (its result, or its error and log); return its status for the log.
+
+    ``failure``: why the launcher ended the job without a result (e.g. Slurm's TIMEOUT); ``columns``:
+    launcher provenance (``slurm_job_id``, ``node``) that the job's own row does not override.
+    """
+    log_path = _relative(str(handle.paths.stderr), suite.out)
+    try:
+        if failure is not None:
+            raise JobEndedError(failure)
+        row = handle.result()
+        row["log_path"] = log_path
+        for key in ("predictions_path", "checkpoint_path"):
+            row[key] = _relative(row.get(key), suite.out)
+        summary.done.append(job.job_id)
+        status = f"ok in {row['wall_time_s']:.0f} s"
+        if row.get("E_ideal") is not None:
+            status += f", E_ideal {row['E_ideal']:.2f} m"
+    except Exception as error:  # the job's own failure, reported by submitit, or the launcher's
+        row = _error_row(job, error, log_path)
+        summary.failed.append(job.job_id)
+        status = f"FAILED: {row['error']} (log: {suite.out / log_path})"
+    row["launcher"] = kind
+    for key, value in (columns or {}).items():
+        if value and not row.get(key):
+            row[key] = value
+    append_rows(suite.results_path, [row])
+    register_finished_job(suite, job, row)
+    return status
 
 
 def register_finished_job(suite: Suite, job: JobSpec, row: dict[str, Any]) -> None:
