@@ -205,6 +205,9 @@ def finish_job(suite: Suite, job: JobSpec, handle: Any, kind: str, summary: RunS
             status += f", E_ideal {row['E_ideal']:.2f} m"
     except Exception as error:  # the job's own failure, reported by submitit, or the launcher's
         row = _error_row(job, error, log_path)
+        if "timed-out" in row["error"]:  # submitit stopped the job at the scheduler's warning before its limit
+            row["error"] = (f"timed out: stopped at its time limit of {suite.launcher['timeout_min']} min "
+                            f"(launcher.timeout_min): {row['error']}")[:500]
         summary.failed.append(job.job_id)
         status = f"FAILED: {row['error']} (log: {suite.out / log_path})"
     row["launcher"] = kind
