@@ -195,7 +195,7 @@ def finish_job(suite: Suite, job: JobSpec, handle: Any, kind: str, summary: RunS
     try:
         if failure is not None:
             raise JobEndedError(failure)
-        row = handle.result()
+        row = handle.results()[0]  # a multi-task (DDP) job: rank 0's row
         row["log_path"] = log_path
         for key in ("predictions_path", "checkpoint_path"):
             row[key] = _relative(row.get(key), suite.out)
