@@ -160,7 +160,8 @@ def test_ddp_through_slurm_equals_one_process_of_the_same_seed(labelled_dir, fea
 
     With every window in the step, no dropout and the ground-truth loss (every window valid, so each rank's
     mean has the same weight), the averaged DDP gradient is the single process's gradient, so the trained
-    weights and test errors agree up to float32 summation order: relative tolerance 1e-4 (measured: below 1e-6).
+    weights and test errors agree up to float32 summation order: relative tolerance 1e-4 (measured: equal in
+    the 6 significant digits results.csv keeps, while the step itself moves E by about a third).
     """
     nets = {"kernels": 16, "feature_dim": 512, "dropout": 0.0, "head_dropout": 0.0}
     models = [{"model": "student", "config": str(REPO / "configs/model/student.yaml"),
