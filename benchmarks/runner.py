@@ -88,13 +88,6 @@ def prepare_data(suite: Suite) -> str:
 # ---------------------------------------------------------------------------------------------- launching
 
 
-def slurm_parameters(suite: Suite, job: JobSpec) -> dict[str, Any]:
-    """submitit ``SlurmExecutor`` parameters of one job: the suite's ``launcher.slurm`` keys (partition,
-    gpus_per_node, cpus_per_task, mem, ntasks_per_node, ...), its timeout and the job's name."""
-    return {"time": int(suite.launcher["timeout_min"]), "job_name": f"aaute-{job.job_id}",
-            **dict(suite.launcher.get("slurm") or {})}
-
-
 def make_executor(suite: Suite, job: JobSpec, kind: str):
     """A submitit executor for one job, its logs in the job's folder."""
     import submitit
@@ -106,13 +99,11 @@ def make_executor(suite: Suite, job: JobSpec, kind: str):
         executor = submitit.LocalExecutor(folder)
         executor.update_parameters(timeout_min=int(suite.launcher["timeout_min"]))
         return executor
-    if kind == "slurm":
-        try:
-            executor = submitit.SlurmExecutor(folder)
-        except RuntimeError as error:  # no srun on this machine
-            raise ValueError(f"launcher slurm: {error} (run from a Slurm login node, or use --launcher local)"
-                             ) from None
-        executor.update_parameters(**slurm_parameters(suite, job))
+    if kind == "slurm":  # one job alone (a suite's stages go as arrays: benchmarks.slurm)
+        from benchmarks.slurm import array_executor
+
+        executor = array_executor(suite, 1, folder)
+        executor.update_parameters(job_name=f"aaute-{job.job_id}")
         return executor
     raise ValueError(f"unknown launcher {kind!r}; known: local, slurm, debug")
 
@@ -237,6 +228,10 @@ def run_suite(suite: Suite, rerun: bool = False, launcher: str | None = None, on
     summary = RunSummary(suite.results_path)
     suite.out.mkdir(parents=True, exist_ok=True)
     kind = launcher or suite.launcher["kind"]
+    if kind == "slurm":
+        from benchmarks.slurm import require_slurm
+
+        require_slurm()
     if suite.raw.get("expected_runtime"):
         log.info("suite %s: expected run time: %s", suite.name, suite.raw["expected_runtime"])
     stage = time.perf_counter()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import getpass
 import logging
+import shutil
 import subprocess
 import time
 from collections.abc import Callable, Iterable
@@ -22,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.suite import JobSpec, Suite
+from datamodules.errors import AauteError
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +37,10 @@ WHY_ENDED = {"CANCELLED": "cancelled (scancel)", "TIMEOUT": "killed at its time 
              "BOOT_FAIL": "its node failed to boot", "DEADLINE": "past its deadline"}
 #: how long a submitted job may be missing from ``squeue`` before it counts as ended without a trace
 VANISHED_AFTER_S = 30.0
+
+
+class LauncherError(AauteError, ValueError):
+    """A launcher that cannot run here (no Slurm on this machine)."""
 
 
 class SacctNoise(logging.Filter):
@@ -91,6 +97,14 @@ def ended_without_result(state: SlurmState, timeout_min: int) -> str:
     return f"Slurm {state.state}: {why}" + (f" [{state.reason}]" if state.reason else "")
 
 
+def require_slurm() -> None:
+    """Refuse early (before any data is prepared) where there is no Slurm to submit to."""
+    missing = [command for command in ("sbatch", "srun", "squeue") if shutil.which(command) is None]
+    if missing:
+        raise LauncherError(f"launcher slurm: no {', '.join(missing)} on PATH (run from a Slurm login node, start "
+                            f"a local cluster with scripts/local_slurm.sh up, or use --launcher local)")
+
+
 def array_parameters(suite: Suite, parallel: int) -> dict[str, Any]:
     """submitit ``SlurmExecutor`` parameters of one stage's array: the suite's ``launcher.slurm`` keys,
     its timeout, and the array's concurrency limit (``launcher.parallel``)."""
@@ -98,15 +112,15 @@ def array_parameters(suite: Suite, parallel: int) -> dict[str, Any]:
             "array_parallelism": max(1, int(parallel)), **dict(suite.launcher.get("slurm") or {})}
 
 
-def array_executor(suite: Suite, parallel: int):
-    """A submitit Slurm executor for a stage's array, its logs in ``<out>/slurm``."""
+def array_executor(suite: Suite, parallel: int, folder: Path | None = None):
+    """A submitit Slurm executor for a stage's array, its logs in ``folder`` (default ``<out>/slurm``)."""
     import submitit
 
     try:
-        executor = submitit.SlurmExecutor(Path(suite.out) / "slurm")
+        executor = submitit.SlurmExecutor(folder or Path(suite.out) / "slurm")
     except RuntimeError as error:  # no srun on this machine
-        raise ValueError(f"launcher slurm: {error} (run from a Slurm login node, or use --launcher local)"
-                         ) from None
+        raise LauncherError(f"launcher slurm: {error} (run from a Slurm login node, or use --launcher local)"
+                            ) from None
     executor.update_parameters(**array_parameters(suite, parallel))
     return executor
 
