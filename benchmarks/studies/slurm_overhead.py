@@ -2,10 +2,12 @@
 
 Run ``python -m benchmarks.studies.slurm_overhead`` on a machine with a Slurm cluster (for a one-node one:
 ``scripts/local_slurm.sh up``). A suite of ``--jobs`` constant-position jobs (each a few seconds: start
-Python, import torch and Lightning, read three 4 s simulated flights, score them) runs twice, with the
-local launcher and with the Slurm launcher (one job array), both ``--parallel`` jobs at once; the table
-gives each launcher's stage time, the mean wall time of a job inside its process, and the overhead per
-job: (Slurm stage time - local stage time) x parallel / jobs, the seconds of scheduling each job costs.
+Python, import torch and Lightning, read three 4 s simulated flights, score them) runs four times, twice with the
+local launcher and twice with the Slurm launcher (one job array), all ``--parallel`` jobs at once, in the order
+local, Slurm, Slurm, local (so a change in the machine's load over the run weighs on both alike). Per
+launcher, the seconds a job costs outside its own work are stage time x parallel / jobs - the mean wall time
+of a job inside its process (process start, imports, submission, scheduling, collecting the result); the
+Slurm launcher's overhead per job is its figure minus the local launcher's.
 """
 
 from __future__ import annotations
@@ -41,27 +43,30 @@ def write_suite(folder: Path, jobs: int, parallel: int, data: Path) -> Path:
 
 
 def measure(jobs: int, parallel: int, work: Path) -> list[dict[str, float | str]]:
-    """Both launchers on the same suite (in separate output folders); one table row each."""
+    """Both launchers on the same suite, twice each (local, slurm, slurm, local); one table row each."""
     from benchmarks.results import read_results
     from benchmarks.runner import run_suite
     from benchmarks.suite import load_suite
 
     data = work / "data"
-    rows = []
-    for launcher in ("local", "slurm"):
-        folder = work / launcher
+    runs: dict[str, list[tuple[float, float]]] = {"local": [], "slurm": []}
+    for index, launcher in enumerate(("local", "slurm", "slurm", "local")):
+        folder = work / f"{launcher}{index}"
         folder.mkdir(parents=True, exist_ok=True)
         suite = load_suite(write_suite(folder, jobs, parallel, data))
         summary = run_suite(suite, launcher=launcher, only=["constant"])
         if summary.failed:
             raise SystemExit(f"{launcher}: {len(summary.failed)} job(s) failed; see {suite.results_path}")
-        results = read_results(suite.results_path)
-        rows.append({"launcher": launcher, "jobs": len(summary.done), "stage_s": summary.stages["train_test"],
-                     "job_wall_s": float(results["wall_time_s"].mean())})
-    local, slurm = rows
-    overhead = (slurm["stage_s"] - local["stage_s"]) * parallel / jobs
+        wall = float(read_results(suite.results_path)["wall_time_s"].mean())
+        runs[launcher].append((summary.stages["train_test"], wall))
+    rows: list[dict[str, float | str]] = []
+    for launcher, pairs in runs.items():
+        stage = sum(p[0] for p in pairs) / len(pairs)
+        wall = sum(p[1] for p in pairs) / len(pairs)
+        rows.append({"launcher": launcher, "jobs": jobs, "stage_s": stage, "job_wall_s": wall,
+                     "outside_s": stage * parallel / jobs - wall})
     for row in rows:
-        row["overhead_per_job_s"] = overhead if row is slurm else 0.0
+        row["overhead_per_job_s"] = float(row["outside_s"]) - float(rows[0]["outside_s"])
     return rows
 
 
@@ -75,11 +80,12 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         rows = measure(args.jobs, args.parallel, args.work or Path(tmp))
     print(f"{args.jobs} constant-position jobs, {args.parallel} at once, 1 thread per job")
-    print("| launcher | jobs | stage (s) | job wall, mean (s) | scheduling overhead per job (s) |")
-    print("|---|---|---|---|---|")
+    print("| launcher | jobs | stage, mean of 2 (s) | job wall, mean (s) | outside the job, per job (s) "
+          "| overhead vs local, per job (s) |")
+    print("|---|---|---|---|---|---|")
     for row in rows:
         print(f"| {row['launcher']} | {row['jobs']} | {row['stage_s']:.1f} | {row['job_wall_s']:.1f} "
-              f"| {row['overhead_per_job_s']:.2f} |")
+              f"| {row['outside_s']:.1f} | {row['overhead_per_job_s']:+.1f} |")
     return 0
 
 
