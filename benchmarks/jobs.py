@@ -61,8 +61,11 @@ def provenance(threads: int) -> dict[str, Any]:
     except OSError:
         pass
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else ""
+    array = os.environ.get("SLURM_ARRAY_JOB_ID"), os.environ.get("SLURM_ARRAY_TASK_ID")
+    slurm_job_id = f"{array[0]}_{array[1]}" if all(array) else os.environ.get("SLURM_JOB_ID", "")
     return {"git_commit": commit or "unknown", "git_dirty": dirty, "cpu": f"{cpu} ({os.cpu_count()} cores)",
-            "gpu": gpu, "threads": threads,
+            "gpu": gpu, "threads": threads, "node": os.environ.get("SLURMD_NODENAME") or platform.node(),
+            "slurm_job_id": slurm_job_id,
             "versions": f"aaute={aaute};torch={torch.__version__};lightning={lightning.__version__};"
                         f"python={platform.python_version()}"}
 
@@ -164,15 +167,22 @@ def _train_and_test(job: JobSpec) -> dict[str, Any]:
             "--trainer.logger.version", ""]  # metrics.csv and checkpoints/ directly in the job folder
     cli = lightning_cli(args, run=False)
     trainer, task, datamodule = cli.trainer, cli.model, cli.datamodule
+    tester = trainer
     if task.learns:
         trainer.fit(task, datamodule=datamodule)
         best = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
         ckpt_path = best or "last"
+        if trainer.world_size > 1:  # tested in one process, so no metric or prediction is split between ranks
+            if trainer.global_rank != 0:
+                _leave_process_group()
+                return {}  # rank 0's row is the job's
+            _leave_process_group()
+            tester = _single_process_tester(trainer, job_dir)
     else:  # a non-learned net (srp_phat) is tested as built
         best, ckpt_path = "", None
     epochs_run = trainer.current_epoch
-    trainer.test(task, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False)
-    metrics = {name: float(value) for name, value in trainer.callback_metrics.items()}
+    tester.test(task, datamodule=datamodule, ckpt_path=ckpt_path, verbose=False)
+    metrics = {name: float(value) for name, value in tester.callback_metrics.items()}
     reduced = task.net.reduced_settings() if hasattr(task.net, "reduced_settings") else {}
     notes = [job.budget_note] if job.budget_note else []
     if reduced:
@@ -197,6 +207,27 @@ def _train_and_test(job: JobSpec) -> dict[str, Any]:
     row.update(breakdown(frame))
     row["predictions_path"] = _write_predictions(job_dir / "predictions.csv", frame)
     return row
+
+
+def _leave_process_group() -> None:
+    """End this process's part in a distributed (DDP) run once every rank has finished fitting."""
+    import torch.distributed as dist
+
+    if dist.is_available() and dist.is_initialized():
+        dist.barrier()
+        dist.destroy_process_group()
+
+
+def _single_process_tester(trainer, job_dir: Path):
+    """A one-device Trainer on the fitted trainer's device, for the test stage after a DDP fit."""
+    from lightning.pytorch import Trainer
+    from lightning.pytorch.plugins.environments import LightningEnvironment
+
+    device = trainer.strategy.root_device
+    return Trainer(accelerator="gpu" if device.type == "cuda" else "cpu", devices=1, num_nodes=1,
+                   precision=trainer.precision, logger=False, enable_checkpointing=False,
+                   enable_progress_bar=False, enable_model_summary=False, default_root_dir=str(job_dir),
+                   plugins=[LightningEnvironment()])  # not the cluster's: its task count is the fit's
 
 
 def _prediction_frame(task, datamodule) -> pd.DataFrame:

@@ -17,9 +17,11 @@ distance from the rig origin. A column that does not apply to a row is empty, ne
 from __future__ import annotations
 
 import csv
+import fcntl
 import io
 import logging
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -58,10 +60,10 @@ PROFILE = ["params_total_M", "params_used_M", "gmacs", "gflops", "profile_inputs
            "latency_ms_1t", "latency_iqr_ms_1t", "latency_ms_all", "latency_iqr_ms_all", "threads_all",
            "throughput_batch", "throughput_1t", "throughput_all", "frontend_ms", "end_to_end_ms"]
 PROVENANCE = ["config_hash", "checkpoint_path", "predictions_path", "git_commit", "git_dirty", "versions",
-              "cpu", "gpu", "threads", "launcher", "started_at", "wall_time_s"]
+              "cpu", "gpu", "threads", "launcher", "slurm_job_id", "node", "started_at", "wall_time_s"]
 COLUMNS = IDENTITY + METHOD + DATA + BUDGET + METRICS + BREAKDOWN + PROFILE + PROVENANCE
 #: columns added to schema 1 after its first files were written: empty when an older file lacks them
-LATER_COLUMNS = ("smoother",)
+LATER_COLUMNS = ("smoother", "slurm_job_id", "node")
 #: columns of a model job's per-window predictions CSV (``predictions_path``; written by jobs, read by plots)
 PREDICTION_COLUMNS = ["sequence_id", "recording_id", "drone", "light", "timestamp", "x", "y", "z",
                       "gt_x", "gt_y", "gt_z", "gt_valid", "smooth_x", "smooth_y", "smooth_z"]
@@ -93,17 +95,41 @@ def format_row(row: Mapping[str, Any]) -> dict[str, str]:
     return cells
 
 
+@contextmanager
+def results_lock(path: str | Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``results.csv`` (``flock`` on the sibling ``.<name>.lock``).
+
+    Appending reads the file, checks it and renames a rewritten copy into place; without the lock two
+    processes appending at once (two ``aaute benchmark`` runs, many Slurm jobs ending together) would
+    each rename their own copy and one row would be lost.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.with_name(f".{path.name}.lock"), "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def append_rows(path: str | Path, rows: Iterable[Mapping[str, Any]]) -> None:
     """Append rows to ``results.csv`` atomically: the file is rewritten to a temporary sibling and renamed.
 
-    An interrupted append therefore leaves either the old file or the new one, never half a row.
-    Columns a user added to the file (notes, ...) are kept, after the schema's, with their values;
-    the new rows leave them empty.
+    An interrupted append therefore leaves either the old file or the new one, never half a row, and
+    concurrent appenders take turns (:func:`results_lock`), so none loses another's rows. Columns a
+    user added to the file (notes, ...) are kept, after the schema's, with their values; the new rows
+    leave them empty.
     """
     path = Path(path)
     new = [format_row(row) for row in rows]
     if not new:
         return
+    with results_lock(path):
+        _append_formatted(path, new)
+
+
+def _append_formatted(path: Path, new: list[dict[str, str]]) -> None:
     old = path.read_text() if path.exists() else ""
     columns = COLUMNS
     if old:

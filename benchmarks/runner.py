@@ -33,6 +33,10 @@ _EXCEPTION_LINE = re.compile(r"^[A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit)\
 SIMULATE_KEYS = {"sequences", "seconds", "seed", "workers", "scene"}
 
 
+class JobEndedError(RuntimeError):
+    """A job its launcher ended before it returned a result (cancelled, killed at its time limit, ...)."""
+
+
 @dataclass
 class RunSummary:
     """What a suite run did."""
@@ -88,13 +92,6 @@ def prepare_data(suite: Suite) -> str:
 # ---------------------------------------------------------------------------------------------- launching
 
 
-def slurm_parameters(suite: Suite, job: JobSpec) -> dict[str, Any]:
-    """submitit ``SlurmExecutor`` parameters of one job: the suite's ``launcher.slurm`` keys (partition,
-    gpus_per_node, cpus_per_task, mem, ntasks_per_node, ...), its timeout and the job's name."""
-    return {"time": int(suite.launcher["timeout_min"]), "job_name": f"aaute-{job.job_id}",
-            **dict(suite.launcher.get("slurm") or {})}
-
-
 def make_executor(suite: Suite, job: JobSpec, kind: str):
     """A submitit executor for one job, its logs in the job's folder."""
     import submitit
@@ -106,13 +103,11 @@ def make_executor(suite: Suite, job: JobSpec, kind: str):
         executor = submitit.LocalExecutor(folder)
         executor.update_parameters(timeout_min=int(suite.launcher["timeout_min"]))
         return executor
-    if kind == "slurm":
-        try:
-            executor = submitit.SlurmExecutor(folder)
-        except RuntimeError as error:  # no srun on this machine
-            raise ValueError(f"launcher slurm: {error} (run from a Slurm login node, or use --launcher local)"
-                             ) from None
-        executor.update_parameters(**slurm_parameters(suite, job))
+    if kind == "slurm":  # one job alone (a suite's stages go as arrays: benchmarks.slurm)
+        from benchmarks.slurm import array_executor
+
+        executor = array_executor(suite, 1, folder)
+        executor.update_parameters(job_name=f"aaute-{job.job_id}")
         return executor
     raise ValueError(f"unknown launcher {kind!r}; known: local, slurm, debug")
 
@@ -157,6 +152,15 @@ def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary
             poll_seconds: float = 1.0) -> None:
     """Run ``jobs`` with at most ``parallel`` at once; append each row as its job ends."""
     start = time.perf_counter()
+    if kind == "slurm":  # one array; Slurm keeps the limit and its states drive the progress line
+        from benchmarks.slurm import run_on_slurm
+
+        def finish(job: JobSpec, handle: Any, failure: str | None, columns: dict[str, Any]) -> bool:
+            log.info("%s %s", job.job_id, finish_job(suite, job, handle, kind, summary, failure, columns))
+            return job.job_id in summary.done
+
+        run_on_slurm(suite, jobs, parallel, run_job, finish)
+        return
     pending = list(jobs)
     running: dict[str, tuple[JobSpec, Any]] = {}
     while pending or running:
@@ -176,27 +180,45 @@ def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary
             if not handle.done():
                 continue
             del running[job_id]
-            log_path = _relative(str(handle.paths.stderr), suite.out)
-            try:
-                row = handle.result()
-                row["log_path"] = log_path
-                for key in ("predictions_path", "checkpoint_path"):
-                    row[key] = _relative(row.get(key), suite.out)
-                row["launcher"] = kind
-                summary.done.append(job_id)
-                status = f"ok in {row['wall_time_s']:.0f} s"
-                if row.get("E_ideal") is not None:
-                    status += f", E_ideal {row['E_ideal']:.2f} m"
-            except Exception as error:  # the job's own failure, reported by submitit
-                row = _error_row(job, error, log_path)
-                row["launcher"] = kind
-                summary.failed.append(job_id)
-                status = f"FAILED: {row['error']} (log: {suite.out / log_path})"
-            append_rows(suite.results_path, [row])
+            status = finish_job(suite, job, handle, kind, summary)
             log.info("%s %s %s", _progress(summary, len(running), len(pending), start), job_id, status)
-            register_finished_job(suite, job, row)
         if running:
             time.sleep(poll_seconds)
+
+
+def finish_job(suite: Suite, job: JobSpec, handle: Any, kind: str, summary: RunSummary,
+               failure: str | None = None, columns: dict[str, Any] | None = None) -> str:
+    """Append the row of an ended job (its result, or its error and log); return its status for the log.
+
+    ``failure``: why the launcher ended the job without a result (e.g. Slurm's TIMEOUT); ``columns``:
+    launcher provenance (``slurm_job_id``, ``node``) that the job's own row does not override.
+    """
+    log_path = _relative(str(handle.paths.stderr), suite.out)
+    try:
+        if failure is not None:
+            raise JobEndedError(failure)
+        row = handle.results()[0]  # a multi-task (DDP) job: rank 0's row
+        row["log_path"] = log_path
+        for key in ("predictions_path", "checkpoint_path"):
+            row[key] = _relative(row.get(key), suite.out)
+        summary.done.append(job.job_id)
+        status = f"ok in {row['wall_time_s']:.0f} s"
+        if row.get("E_ideal") is not None:
+            status += f", E_ideal {row['E_ideal']:.2f} m"
+    except Exception as error:  # the job's own failure, reported by submitit, or the launcher's
+        row = _error_row(job, error, log_path)
+        if "timed-out" in row["error"]:  # submitit stopped the job at the scheduler's warning before its limit
+            row["error"] = (f"timed out: stopped at its time limit of {suite.launcher['timeout_min']} min "
+                            f"(launcher.timeout_min): {row['error']}")[:500]
+        summary.failed.append(job.job_id)
+        status = f"FAILED: {row['error']} (log: {suite.out / log_path})"
+    row["launcher"] = kind
+    for key, value in (columns or {}).items():
+        if value and not row.get(key):
+            row[key] = value
+    append_rows(suite.results_path, [row])
+    register_finished_job(suite, job, row)
+    return status
 
 
 def register_finished_job(suite: Suite, job: JobSpec, row: dict[str, Any]) -> None:
@@ -217,6 +239,10 @@ def run_suite(suite: Suite, rerun: bool = False, launcher: str | None = None, on
     summary = RunSummary(suite.results_path)
     suite.out.mkdir(parents=True, exist_ok=True)
     kind = launcher or suite.launcher["kind"]
+    if kind == "slurm":
+        from benchmarks.slurm import require_slurm
+
+        require_slurm()
     if suite.raw.get("expected_runtime"):
         log.info("suite %s: expected run time: %s", suite.name, suite.raw["expected_runtime"])
     stage = time.perf_counter()

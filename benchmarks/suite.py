@@ -29,8 +29,10 @@ fails before anything trains. The keys (all paths relative to the working direct
     launcher: {kind: local, parallel: 2, threads_per_job: 1, timeout_min: 120,
                slurm: {partition: gpu, gpus_per_node: 1, cpus_per_task: 8}}
 
+On Slurm, each stage's jobs go as one job array and ``launcher.parallel`` is its concurrency limit.
 A job asking for several devices trains with Lightning's DDP: under Slurm give ``ntasks_per_node``
-equal to ``trainer.devices`` (Lightning reads the Slurm environment); in a local job use
+equal to ``trainer.devices`` (Lightning reads the Slurm environment; the fitted model is then tested
+in one process); in a local job use
 ``trainer.strategy: ddp_spawn``, which needs no re-launch of the job's command line.
 """
 

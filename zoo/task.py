@@ -261,7 +261,8 @@ class TrajectoryTask(L.LightningModule):
         total, _ = self.objective(outputs, batch)
         if total is not None:
             self._check_finite(total, outputs, batch, "validation")
-            self.log("val_loss", total, batch_size=len(batch["gt"]), add_dataloader_idx=False)
+            # synchronised: under DDP every rank's checkpoint callback must see the same value
+            self.log("val_loss", total, batch_size=len(batch["gt"]), add_dataloader_idx=False, sync_dist=True)
 
     def on_validation_epoch_end(self) -> None:
         self._log_metrics("val")

@@ -151,23 +151,6 @@ def test_the_mmaud_v1_suite_runs_on_a_derived_npy_copy(tmp_path, monkeypatch):
     assert rows["E_ideal"].notna().all()
 
 
-def test_the_slurm_launcher_takes_the_suites_options(tmp_path):
-    import shutil
-
-    from benchmarks.runner import make_executor, slurm_parameters
-
-    suite = load_suite(REPO / "configs" / "benchmark" / "paper.yaml", {"out": str(tmp_path)})
-    job = expand_jobs(suite)[0]
-    parameters = slurm_parameters(suite, job)
-    assert parameters["partition"] == "gpu" and parameters["gpus_per_node"] == 1
-    assert parameters["time"] == suite.launcher["timeout_min"] and parameters["job_name"] == f"aaute-{job.job_id}"
-    if shutil.which("srun") is None:
-        with pytest.raises(ValueError, match="launcher slurm: .*srun.*--launcher local"):
-            make_executor(suite, job, "slurm")
-    with pytest.raises(ValueError, match="unknown launcher 'pbs'"):
-        make_executor(suite, job, "pbs")
-
-
 @pytest.mark.slow
 def test_the_demo_suite_runs_end_to_end_to_the_leaderboard(tmp_path, monkeypatch):
     """`make demo` in a temporary folder: about 12 minutes on 2 cores."""
