@@ -107,9 +107,15 @@ def require_slurm() -> None:
 
 def array_parameters(suite: Suite, parallel: int) -> dict[str, Any]:
     """submitit ``SlurmExecutor`` parameters of one stage's array: the suite's ``launcher.slurm`` keys,
-    its timeout, and the array's concurrency limit (``launcher.parallel``)."""
-    return {"time": int(suite.launcher["timeout_min"]), "job_name": f"aaute-{suite.name}",
-            "array_parallelism": max(1, int(parallel)), **dict(suite.launcher.get("slurm") or {})}
+    its timeout, and the array's concurrency limit (``launcher.parallel``).
+
+    Slurm warns a job (submitit's USR2, on which a job is stopped as timed out) ``signal_delay_s`` before
+    its limit, and may warn up to 60 s earlier still (``sbatch --signal``); submitit's default of 90 s
+    would then warn a job of a few minutes as it starts, so short limits get a quarter of the limit.
+    """
+    minutes = int(suite.launcher["timeout_min"])
+    return {"time": minutes, "job_name": f"aaute-{suite.name}", "array_parallelism": max(1, int(parallel)),
+            "signal_delay_s": min(90, minutes * 15), **dict(suite.launcher.get("slurm") or {})}
 
 
 def array_executor(suite: Suite, parallel: int, folder: Path | None = None):

@@ -112,12 +112,13 @@ def _cancel_when_running(name: str, stop: threading.Event, cancelled: list[str])
 
 def test_a_cancelled_job_and_one_killed_at_its_time_limit_say_so(labelled_dir, feature_cache, tmp_path):
     """Two students that would train for hours: one is cancelled, the other reaches its 2-minute limit."""
+    name = f"slurm_killed_{os.getpid()}"  # its jobs alone are cancelled, whoever else uses the cluster
     suite = load_suite(write_suite(
-        tmp_path / "suite.yaml", labelled_dir, feature_cache, name="slurm_killed", constant=[], seeds=[0, 1],
+        tmp_path / "suite.yaml", labelled_dir, feature_cache, name=name, constant=[], seeds=[0, 1],
         launcher={"kind": "slurm", "parallel": 2, "threads_per_job": 1, "timeout_min": 2}))
     suite.raw["trainer"]["overrides"].update(max_epochs=100000, limit_val_batches=0)
     stop, cancelled = threading.Event(), []
-    canceller = threading.Thread(target=_cancel_when_running, args=("aaute-slurm_killed", stop, cancelled))
+    canceller = threading.Thread(target=_cancel_when_running, args=(f"aaute-{name}", stop, cancelled))
     canceller.start()
     try:
         summary = run_suite(suite)

@@ -47,7 +47,9 @@ def test_the_array_takes_the_suites_options_and_concurrency_limit(tmp_path):
     parameters = array_parameters(suite, 3)
     assert parameters["partition"] == "gpu" and parameters["gpus_per_node"] == 1
     assert parameters["time"] == suite.launcher["timeout_min"] and parameters["array_parallelism"] == 3
-    assert parameters["job_name"] == "aaute-paper"
+    assert parameters["job_name"] == "aaute-paper" and parameters["signal_delay_s"] == 90
+    suite.raw["launcher"]["timeout_min"] = 2
+    assert array_parameters(suite, 1)["signal_delay_s"] == 30  # warned 30 to 90 s after it starts
     with pytest.raises(ValueError, match="unknown launcher 'pbs'"):
         make_executor(suite, expand_jobs(suite)[0], "pbs")
 
