@@ -22,6 +22,8 @@ fails before anything trains. The keys (all paths relative to the working direct
     seeds: [0]
     smoothing: true                       # or a smoother preset name (paper, tuned, robust) to use it
     constant: [gt, pseudo]                # constant-position rows (mean training GT / pseudo-label)
+    bound: true                           # the CRLB row (benchmarks/limit.py): false | true | {band_hz: [lo, hi]};
+                                          # default true for simulated data, false for real
     models:
       - {model: student, config: configs/model/student.yaml, protocols: [by_sequence],
          args: {trainer.max_epochs: 20}, budget_note: ""}
@@ -45,11 +47,12 @@ from typing import Any
 
 import yaml
 
+from benchmarks.limit import BOUND_METHOD, BOUND_MODEL, BoundError, bound_options
 from benchmarks.results import LIGHTS, PROTOCOLS
 from datamodules.errors import AauteError
 
 SUITE_KEYS = {"name", "description", "out", "data", "trainer", "protocols", "lights", "seeds", "smoothing",
-              "constant", "models", "profile", "launcher", "expected_runtime"}
+              "constant", "models", "profile", "launcher", "expected_runtime", "bound"}
 DATA_KEYS = {"description", "kind", "config", "root", "simulate", "label", "init_args"}
 MODEL_KEYS = {"model", "config", "protocols", "args", "budget_note", "method"}
 LAUNCHER_KEYS = {"kind", "parallel", "threads_per_job", "timeout_min", "slurm"}
@@ -71,7 +74,7 @@ class JobSpec:
     """One job of a suite: everything its process needs (picklable)."""
 
     job_id: str
-    kind: str  #: model | constant | profile
+    kind: str  #: model | constant | profile | bound
     suite: str
     model: str
     method: str
@@ -177,6 +180,10 @@ def load_suite(path: str | Path, overrides: dict[str, Any] | None = None) -> Sui
     constant = raw.setdefault("constant", list(CONSTANT_TARGETS))
     if constant and set(constant) - set(CONSTANT_TARGETS):
         raise _fail(path, f"constant must list targets of {list(CONSTANT_TARGETS)}, got {constant}")
+    try:
+        bound_options(raw.get("bound"), data.get("kind", "simulated"), str(path))
+    except BoundError as error:
+        raise SuiteError(str(error)) from None
     known = list_models()
     models = raw["models"]
     if not isinstance(models, list) or not models:
@@ -264,6 +271,10 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
     data_info = {"description": suite.data.get("description", ""), "kind": suite.data.get("kind", "simulated"),
                  "root": str(suite.data["root"]), "fingerprint": data_fingerprint}
     jobs: list[JobSpec] = []
+    bound = bound_options(raw.get("bound"), data_info["kind"], str(suite.path))
+    # constant and bound jobs take the windows of the student's config (else the first model's), not its training
+    reference = next((m for m in raw["models"] if m["model"] == "student"), raw["models"][0])
+    windows = {"model": reference["model"], "config": reference.get("config")}
     for protocol in raw["protocols"]:
         for seed in seeds:
             for entry in raw["models"]:
@@ -280,9 +291,6 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
                     budget_note=entry.get("budget_note", ""), data=data_info,
                     config_hash=_hash("model", args, _file_digest(_job_configs(raw, entry)), data_fingerprint)))
             for target in raw.get("constant") or []:
-                # the windows of the student's config (else the first model's), not its training arguments
-                reference = next((m for m in raw["models"] if m["model"] == "student"), raw["models"][0])
-                windows = {"model": reference["model"], "config": reference.get("config")}
                 args = model_args(suite, windows, protocol, seed)
                 job_id = f"constant_{target}-{protocol}-s{seed}"
                 jobs.append(JobSpec(
@@ -291,6 +299,15 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
                     category="reference", protocol=protocol, seed=seed, cli_args=args,
                     job_dir=str(suite.out / "jobs" / job_id), threads=threads, target=target, data=data_info,
                     config_hash=_hash("constant", target, args, _file_digest(_job_configs(raw, windows)),
+                                      data_fingerprint)))
+            if bound is not None:
+                args = model_args(suite, windows, protocol, seed)
+                job_id = f"bound-{protocol}-s{seed}"
+                jobs.append(JobSpec(
+                    job_id=job_id, kind="bound", suite=suite.name, model=BOUND_MODEL, method=BOUND_METHOD,
+                    category="reference", protocol=protocol, seed=seed, cli_args=args,
+                    job_dir=str(suite.out / "jobs" / job_id), threads=threads, data=data_info, options=bound,
+                    config_hash=_hash("bound", bound, args, _file_digest(_job_configs(raw, windows)),
                                       data_fingerprint)))
     profile = raw.get("profile", {})
     if profile is not False:

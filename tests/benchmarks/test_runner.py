@@ -34,6 +34,7 @@ def _write_suite(path: Path, **changes) -> Path:
         "seeds": [0],
         "smoothing": False,
         "constant": ["gt"],
+        "bound": False,
         "models": [{"model": "student", "config": str(REPO / "configs/model/student.yaml"),
                     "args": {"model.lr": changes.pop("lr", 1e-4)}}],
         "profile": False,
