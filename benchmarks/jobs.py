@@ -276,6 +276,6 @@ def _bound(job: JobSpec) -> dict[str, Any]:
     row.update(split_counts(datamodule))
     path = Path(job.job_dir) / "bounds.csv"
     with atomic_write(path) as tmp:
-        frame[[*PREDICTION_COLUMNS, "bound_m", "snr_source"]].to_csv(tmp, index=False, float_format="%.5g")
+        frame[[*PREDICTION_COLUMNS, "bound_m", "snr_source"]].to_csv(tmp, index=False, float_format="%.6f")
     row["predictions_path"] = str(path)
     return row

@@ -64,7 +64,7 @@ def test_the_bound_job_bounds_every_test_window(labelled_dir, feature_cache, tmp
     assert set(frame["light"]) == {"ideal", "dark"} and (frame["snr_source"] == "simulator").all()
     bound = frame.loc[frame["light"] == "ideal", "bound_m"].to_numpy()
     assert len(bound) == row["n_test_windows"] and np.all(np.isfinite(bound)) and np.all(bound > 0)
-    assert row["E_ideal"] == pytest.approx(np.sqrt(np.mean(bound ** 2)), rel=1e-4) == row["E_dark"]
-    assert row["bound_median_m"] == pytest.approx(np.median(bound), rel=1e-4) and row["bound_band_hz"] == "full"
+    assert row["E_ideal"] == pytest.approx(np.sqrt(np.mean(bound ** 2)), rel=1e-3) == row["E_dark"]
+    assert row["bound_median_m"] == pytest.approx(np.median(bound), rel=1e-3) and row["bound_band_hz"] == "full"
     assert row["E_ideal_mavic2"] == pytest.approx(row["E_ideal"])  # the one test flight is a Mavic 2
     assert Path(row["predictions_path"]).parent == Path(job.job_dir)
