@@ -9,8 +9,11 @@ bin as a low quantile of its frame powers over the whole recording, divided by t
 share of the mean for noise alone (minimum statistics with bias compensation, after Martin 2001, "Noise power
 spectral density estimation based on optimal smoothing and minimum statistics", IEEE Trans. SAP 9), and the
 drone's as what the frame holds above it; such spectra say ``source: estimated``. The
-estimate assumes the drone is quieter (farther, or absent) in part of the recording: where it never is, the
-noise is overestimated and the SNR underestimated.
+estimate assumes the noise is steady and the drone quieter (farther, or absent) in part of the recording: where
+it never is, the SNR comes out low; where the noise fluctuates (wind, gusts), its peaks count as drone and the
+SNR comes out high. On five simulated 20 s test flights the median bound from the estimate was within a
+factor 3.5 of the bound from the simulator's record for four, and 50 times smaller for the quietest (an Avata
+at a median in-band SNR of -23 dB).
 """
 
 from __future__ import annotations

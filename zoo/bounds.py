@@ -32,8 +32,9 @@ which never exceeds what knowing only the flight region gives.
 
 What the bound leaves out, all of which can only make real errors larger: it is local (below a threshold SNR,
 or with ambiguous lags, estimators leave it; Ziv–Zakai bounds describe that regime), it takes the source as
-still during the window and the spectra as known, and it uses the direct path only (the ground reflection is
-treated as neither signal nor noise). It needs microphone positions and a clock shared by all microphones.
+still during the window and the spectra as known, and it models the direct path only (the simulator's SNR
+counts the ground-reflected sound as the drone's, but its delays carry no information here). It needs
+microphone positions and a clock shared by all microphones.
 """
 
 from __future__ import annotations
