@@ -26,7 +26,8 @@ fails before anything trains. The keys (all paths relative to the working direct
                                           # default true for simulated data, false for real
     models:
       - {model: student, config: configs/model/student.yaml, protocols: [by_sequence],
-         args: {trainer.max_epochs: 20}, budget_note: ""}
+         args: {trainer.max_epochs: 20}, budget_note: "", method: "", tag: ""}   # tag: tells apart two
+                                          # entries of one model (job id <model>_<tag>-<protocol>-s<seed>)
     profile: {min_run_time: 0.5, throughput_batch: 64}   # or false
     launcher: {kind: local, parallel: 2, threads_per_job: 1, timeout_min: 120,
                slurm: {partition: gpu, gpus_per_node: 1, cpus_per_task: 8}}
@@ -54,7 +55,7 @@ from datamodules.errors import AauteError
 SUITE_KEYS = {"name", "description", "out", "data", "trainer", "protocols", "lights", "seeds", "smoothing",
               "constant", "models", "profile", "launcher", "expected_runtime", "bound"}
 DATA_KEYS = {"description", "kind", "config", "root", "simulate", "label", "init_args"}
-MODEL_KEYS = {"model", "config", "protocols", "args", "budget_note", "method"}
+MODEL_KEYS = {"model", "config", "protocols", "args", "budget_note", "method", "tag"}
 LAUNCHER_KEYS = {"kind", "parallel", "threads_per_job", "timeout_min", "slurm"}
 LAUNCHERS = ("local", "slurm", "debug")
 CONSTANT_TARGETS = ("gt", "pseudo")
@@ -282,7 +283,7 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
                     continue
                 name = entry["model"]
                 args = model_args(suite, entry, protocol, seed)
-                job_id = f"{name}-{protocol}-s{seed}"
+                job_id = f"{name}{'_' + str(entry['tag']) if entry.get('tag') else ''}-{protocol}-s{seed}"
                 jobs.append(JobSpec(
                     job_id=job_id, kind="model", suite=suite.name, model=name,
                     method=entry.get("method") or METHOD_NAMES.get(name, name),
@@ -309,6 +310,9 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
                     job_dir=str(suite.out / "jobs" / job_id), threads=threads, data=data_info, options=bound,
                     config_hash=_hash("bound", bound, args, _file_digest(_job_configs(raw, windows)),
                                       data_fingerprint)))
+    repeated = sorted({job.job_id for job in jobs if [j.job_id for j in jobs].count(job.job_id) > 1})
+    if repeated:
+        raise _fail(suite.path, f"jobs {repeated} appear twice: give the models entries of one model distinct tags")
     profile = raw.get("profile", {})
     if profile is not False:
         options = dict(profile or {})

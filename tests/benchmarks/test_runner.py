@@ -71,6 +71,17 @@ def test_a_crashed_job_keeps_the_others_rows_and_a_rerun_completes_only_it(label
     assert run_suite(fixed).skipped == ["student-by_sequence-s0", "constant_gt-by_sequence-s0"]
 
 
+def test_two_entries_of_one_model_need_distinct_tags(tmp_path, labelled_dir):
+    entry = {"model": "student", "config": str(REPO / "configs/model/student.yaml")}
+    twice = _write_suite(tmp_path / "suite.yaml", root=str(labelled_dir), cache=str(tmp_path), models=[entry, entry])
+    with pytest.raises(SuiteError, match=r"student-by_sequence-s0.*appear twice.*distinct tags"):
+        expand_jobs(load_suite(twice))
+    tagged = _write_suite(tmp_path / "suite.yaml", root=str(labelled_dir), cache=str(tmp_path),
+                          models=[entry, {**entry, "tag": "small"}])
+    ids = [job.job_id for job in expand_jobs(load_suite(tagged)) if job.kind == "model"]
+    assert ids == ["student-by_sequence-s0", "student_small-by_sequence-s0"]
+
+
 def test_suite_errors_name_the_key(tmp_path, labelled_dir):
     base = {"root": str(labelled_dir), "cache": str(tmp_path / "cache")}
     with pytest.raises(SuiteError, match="unknown model 'bogus'; known models: .*student"):
