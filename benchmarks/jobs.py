@@ -5,7 +5,8 @@
   condition, and writes the per-window test predictions (raw and smoothed) beside its checkpoints;
 - ``constant``: the constant-position predictor, the mean training target (ground truth or
   pseudo-label) of the same split, scored on the same test windows;
-- ``profile``: :func:`benchmarks.profiler.profile_model` at the model's reference shapes.
+- ``profile``: :func:`benchmarks.profiler.profile_model` at the model's reference shapes;
+- ``bound``: the Cramér–Rao bound of the same test windows (:mod:`benchmarks.limit`).
 """
 
 from __future__ import annotations
@@ -94,6 +95,8 @@ def run_job(job: JobSpec) -> dict[str, Any]:
             row.update(_train_and_test(job))
         elif job.kind == "constant":
             row.update(_constant(job))
+        elif job.kind == "bound":
+            row.update(_bound(job))
         elif job.kind == "profile":
             from benchmarks.profiler import profile_model
 
@@ -289,4 +292,23 @@ def _constant(job: JobSpec) -> dict[str, Any]:
     row.update(split_counts(datamodule))
     row.update(breakdown(frame))
     row["predictions_path"] = _write_predictions(Path(job.job_dir) / "predictions.csv", frame)
+    return row
+
+
+def _bound(job: JobSpec) -> dict[str, Any]:
+    """The physical limit of the split's test windows (``job.options["band_hz"]``: None for the full band)."""
+    from benchmarks.limit import bound_frame, bound_metrics
+    from zoo.cli import lightning_cli
+
+    datamodule = lightning_cli(job.cli_args, run=False).datamodule
+    datamodule.prepare_data()
+    datamodule.setup("fit")
+    datamodule.setup("test")
+    frame = bound_frame(datamodule, job.options.get("band_hz"))
+    row = bound_metrics(frame, job.options.get("band_hz"))
+    row.update(split_counts(datamodule))
+    path = Path(job.job_dir) / "bounds.csv"
+    with atomic_write(path) as tmp:
+        frame[[*PREDICTION_COLUMNS, "bound_m", "snr_source"]].to_csv(tmp, index=False, float_format="%.6f")
+    row["predictions_path"] = str(path)
     return row

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
+from benchmarks.limit import bound_sentence
 from benchmarks.results import (
     BREAKDOWN,
     CATEGORIES,
@@ -294,6 +295,8 @@ def _caption(rows: pd.DataFrame, stats: pd.DataFrame, protocol: str) -> str:
     parts.append(_seeds_sentence(stats, rows))
     if smoothers := _smoother_sentence(rows):
         parts.append(smoothers)
+    if limit := bound_sentence(rows):
+        parts.append(limit)
     commit = ", ".join(value[:12] for value in _unique(rows, "git_commit")) or "not recorded"
     dirty = " (dirty working tree)" if rows["git_dirty"].str.lower().isin(TRUE).any() else ""
     parts.append(f"Machine: cpu {_joined(rows, 'cpu')}; gpu {_joined(rows, 'gpu', 'none')}; "
@@ -354,7 +357,7 @@ def _section_order(key: tuple[str, str, str], first_seen: dict) -> tuple:
 def build_sections(frame: pd.DataFrame) -> tuple[list[Section], pd.DataFrame]:
     """The sections (one per suite x protocol x data fingerprint) and the failed rows no section claims."""
     ok = frame[frame["status"] == "ok"]
-    entries = ok[ok["kind"].isin(["model", "constant"])]
+    entries = ok[ok["kind"].isin(["model", "constant", "bound"])]
     profiles = ok[ok["kind"] == "profile"]
     failed = frame[frame["status"] != "ok"]
     keys = list(zip(entries["suite"], entries["protocol"], entries["data_fingerprint"], strict=True))

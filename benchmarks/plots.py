@@ -25,6 +25,7 @@ from datamodules.atomic import atomic_write
 from datamodules.errors import AauteError
 
 REFERENCE_STYLE = {"color": "0.45", "linestyle": "--"}  #: the constant-position predictor in every figure
+BOUND_STYLE = {"color": "black", "linewidth": 2.0}  #: the physical limit (CRLB) in every figure
 DPI = 100
 #: Fixed margins (fractions of the figure) that fit the labels used here; a layout engine (constrained or
 #: tight layout) would fit any label but doubles the drawing time, which dominates a leaderboard render.
@@ -68,6 +69,14 @@ def window_errors(frame: pd.DataFrame) -> np.ndarray:
     diff = valid[["x", "y", "z"]].to_numpy(float) - valid[["gt_x", "gt_y", "gt_z"]].to_numpy(float)
     errors = np.linalg.norm(diff, axis=1)
     return errors[np.isfinite(errors)]
+
+
+def bound_values(frame: pd.DataFrame) -> np.ndarray:
+    """Per-window physical limit (m) of a bound job's ``bounds.csv``, over windows with valid ground truth."""
+    if "bound_m" not in frame:
+        return np.zeros(0)
+    values = frame.loc[frame["gt_valid"].astype(float) > 0, "bound_m"].to_numpy(float)
+    return values[np.isfinite(values)]
 
 
 def save_png(figure: Figure, path: Path) -> bytes:
@@ -133,6 +142,7 @@ class Curve:
 
     label: str
     reference: bool = False  #: the constant predictor: drawn grey and dashed
+    bound: bool = False  #: the physical limit (CRLB): drawn as a black line
 
 
 def error_cdf_figure(errors: Sequence[tuple[Curve, np.ndarray]], title: str) -> Figure:
@@ -143,7 +153,7 @@ def error_cdf_figure(errors: Sequence[tuple[Curve, np.ndarray]], title: str) -> 
     for index, (curve, values) in enumerate(errors):
         values = np.sort(values)
         fraction = np.arange(1, len(values) + 1) / len(values)
-        style = REFERENCE_STYLE if curve.reference else {"color": f"C{index % 10}"}
+        style = BOUND_STYLE if curve.bound else REFERENCE_STYLE if curve.reference else {"color": f"C{index % 10}"}
         ax.step(values, fraction, where="post", label=f"{curve.label} (median {np.median(values):.2f} m)", **style)
     ax.set_xlabel("per-window Euclidean error (m), ideal light")
     ax.set_ylabel("fraction of test windows")
@@ -198,10 +208,14 @@ def error_by_range_figure(curves: Sequence[Curve], bands: Sequence[str], means: 
     figure = Figure(figsize=(8, 4.5))
     figure.subplots_adjust(**MARGINS)
     ax = figure.subplots()
-    width = 0.8 / max(len(curves), 1)
+    bars = [index for index, curve in enumerate(curves) if not curve.bound]
+    width = 0.8 / max(len(bars), 1)
     positions = np.arange(len(bands))
     for index, curve in enumerate(curves):
-        offset = positions - 0.4 + (index + 0.5) * width
+        if curve.bound:  # a line across the groups, not a bar
+            ax.plot(positions, means[index], marker="_", markersize=30, label=curve.label, **BOUND_STYLE)
+            continue
+        offset = positions - 0.4 + (bars.index(index) + 0.5) * width
         style = ({"color": "0.8", "edgecolor": "0.35", "hatch": "//"} if curve.reference
                  else {"color": f"C{index % 10}"})
         ax.bar(offset, means[index], width, yerr=stds[index], capsize=2, label=curve.label, **style)  # NaN: none
@@ -306,9 +320,11 @@ class SectionPlotter:
             if isinstance(frame, str):
                 left_out.append(f"{stat['display']} ({frame})")
                 continue
-            errors = window_errors(light_subset(frame, "ideal"))
+            bound = stat["kind"] == "bound"
+            windows = light_subset(frame, "ideal")
+            errors = bound_values(windows) if bound else window_errors(windows)
             if errors.size:
-                curves.append((Curve(stat["display"], bool(stat["reference"])), errors))
+                curves.append((Curve(stat["display"], bool(stat["reference"]), bound), errors))
             else:
                 left_out.append(f"{stat['display']} (no window with valid ground truth)")
         if not curves:
@@ -318,7 +334,9 @@ class SectionPlotter:
             self.warn(f"{what}: left out {'; '.join(left_out)}")
         figure = error_cdf_figure(curves, f"Per-window error, Table {number} ({protocol})")
         caption = (f"Distribution (CDF) of the per-window Euclidean error under ideal light, one curve per method "
-                   f"of Table {number} (lowest seed of each method, raw estimates).")
+                   f"of Table {number} (lowest seed of each method, raw estimates)")
+        limit = any(curve.bound for curve, _ in curves)
+        caption += "; the black line is the per-window physical limit (CRLB)." if limit else "."
         return [self.save(figure, f"t{number}_error_cdf.png", caption)]
 
     def error_vs_gmacs(self, stats: pd.DataFrame, number: int, protocol: str) -> list[Plot]:
@@ -347,8 +365,11 @@ class SectionPlotter:
             return []
         means = stats[means_columns].to_numpy(float)
         stds = stats[[f"E_ideal_{band}_std" for band in bands]].to_numpy(float)
-        curves = [Curve(stat["display"], bool(stat["reference"])) for _, stat in stats.iterrows()]
+        curves = [Curve(stat["display"], bool(stat["reference"]), stat["kind"] == "bound")
+                  for _, stat in stats.iterrows()]
         figure = error_by_range_figure(curves, list(bands.values()), means, stds,
                                        f"E by range, Table {number} ({protocol})")
-        caption = f"E (ideal light, mean ± std over seeds) per distance band, one bar per method of Table {number}."
+        caption = f"E (ideal light, mean ± std over seeds) per distance band, one bar per method of Table {number}"
+        limit = any(curve.bound for curve in curves)
+        caption += "; the black line is the physical limit (CRLB, RMS per band)." if limit else "."
         return [self.save(figure, f"t{number}_error_by_range.png", caption)]

@@ -1,11 +1,13 @@
 """The ``results.csv`` schema: one row per benchmark job, appended atomically, read back with checks.
 
-Every number of the leaderboard comes from this file. A row is one of three kinds:
+Every number of the leaderboard comes from this file. A row is one of four kinds:
 
 - ``model``: a zoo model trained and tested (one model x protocol x seed), with its test metrics
   per light condition, per drone and per range, smoothed E (``smoother`` names the smoother's preset),
   and the provenance of the run;
 - ``constant``: the constant-position predictor (the mean training target) on the same split;
+- ``bound``: the physical limit, the Cramér–Rao bound of every test window of the split
+  (:mod:`benchmarks.limit`): its E columns are the RMS of the per-window bound, ``bound_median_m`` the median;
 - ``profile``: parameters, GMACs / FLOPs and latency of a model at its reference input shapes.
 
 Metric columns are in metres: ``Dx/Dy/Dz`` mean absolute error per axis, ``E`` mean Euclidean
@@ -34,7 +36,7 @@ from datamodules.recording import DRONE_TYPES
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
-KINDS = ("model", "constant", "profile")
+KINDS = ("model", "constant", "profile", "bound")
 CATEGORIES = ("supervised", "self-supervised", "non-learned", "reference")
 PROTOCOLS = ("by_sequence", "time_blocks", "random_windows")
 LIGHTS = ("ideal", "dark")
@@ -61,9 +63,10 @@ PROFILE = ["params_total_M", "params_used_M", "gmacs", "gflops", "profile_inputs
            "throughput_batch", "throughput_1t", "throughput_all", "frontend_ms", "end_to_end_ms"]
 PROVENANCE = ["config_hash", "checkpoint_path", "predictions_path", "git_commit", "git_dirty", "versions",
               "cpu", "gpu", "threads", "launcher", "slurm_job_id", "node", "started_at", "wall_time_s"]
-COLUMNS = IDENTITY + METHOD + DATA + BUDGET + METRICS + BREAKDOWN + PROFILE + PROVENANCE
+BOUND = ["bound_median_m", "snr_source", "bound_band_hz"]
+COLUMNS = IDENTITY + METHOD + DATA + BUDGET + METRICS + BREAKDOWN + PROFILE + BOUND + PROVENANCE
 #: columns added to schema 1 after its first files were written: empty when an older file lacks them
-LATER_COLUMNS = ("smoother", "slurm_job_id", "node")
+LATER_COLUMNS = ("smoother", "slurm_job_id", "node", *BOUND)
 #: columns of a model job's per-window predictions CSV (``predictions_path``; written by jobs, read by plots)
 PREDICTION_COLUMNS = ["sequence_id", "recording_id", "drone", "light", "timestamp", "x", "y", "z",
                       "gt_x", "gt_y", "gt_z", "gt_valid", "smooth_x", "smooth_y", "smooth_z"]
@@ -188,7 +191,7 @@ def read_cells(path: str | Path) -> tuple[list[str], pd.DataFrame]:
 #: measured quantities: a number >= 0 or empty (the leaderboard ranks them)
 MEASURES = [*METRICS, *BREAKDOWN, *(c for c in PROFILE if c not in ("profile_inputs", "threads_all")), "wall_time_s"]
 NUMERIC = ["seed", "alpha", *DATA[6:], *BUDGET[:5], *METRICS, *BREAKDOWN,
-           *(c for c in PROFILE if c != "profile_inputs"), "threads", "wall_time_s"]
+           *(c for c in PROFILE if c != "profile_inputs"), "bound_median_m", "threads", "wall_time_s"]
 
 
 def read_results(path: str | Path, check_values: bool = True) -> pd.DataFrame:

@@ -22,9 +22,12 @@ fails before anything trains. The keys (all paths relative to the working direct
     seeds: [0]
     smoothing: true                       # or a smoother preset name (paper, tuned, robust) to use it
     constant: [gt, pseudo]                # constant-position rows (mean training GT / pseudo-label)
+    bound: true                           # the CRLB row (benchmarks/limit.py): false | true | {band_hz: [lo, hi]};
+                                          # default true for simulated data, false for real
     models:
       - {model: student, config: configs/model/student.yaml, protocols: [by_sequence],
-         args: {trainer.max_epochs: 20}, budget_note: ""}
+         args: {trainer.max_epochs: 20}, budget_note: "", method: "", tag: ""}   # tag: tells apart two
+                                          # entries of one model (job id <model>_<tag>-<protocol>-s<seed>)
     profile: {min_run_time: 0.5, throughput_batch: 64}   # or false
     launcher: {kind: local, parallel: 2, threads_per_job: 1, timeout_min: 120,
                slurm: {partition: gpu, gpus_per_node: 1, cpus_per_task: 8}}
@@ -47,13 +50,14 @@ from typing import Any
 
 import yaml
 
+from benchmarks.limit import BOUND_METHOD, BOUND_MODEL, BoundError, bound_options
 from benchmarks.results import LIGHTS, PROTOCOLS
 from datamodules.errors import AauteError
 
 SUITE_KEYS = {"name", "description", "out", "data", "trainer", "protocols", "lights", "seeds", "smoothing",
-              "constant", "models", "profile", "launcher", "expected_runtime"}
+              "constant", "models", "profile", "launcher", "expected_runtime", "bound"}
 DATA_KEYS = {"description", "kind", "config", "root", "simulate", "label", "init_args"}
-MODEL_KEYS = {"model", "config", "protocols", "args", "budget_note", "method"}
+MODEL_KEYS = {"model", "config", "protocols", "args", "budget_note", "method", "tag"}
 LAUNCHER_KEYS = {"kind", "parallel", "threads_per_job", "timeout_min", "slurm"}
 LAUNCHERS = ("local", "slurm", "debug")
 CONSTANT_TARGETS = ("gt", "pseudo")
@@ -73,7 +77,7 @@ class JobSpec:
     """One job of a suite: everything its process needs (picklable)."""
 
     job_id: str
-    kind: str  #: model | constant | profile
+    kind: str  #: model | constant | profile | bound
     suite: str
     model: str
     method: str
@@ -183,6 +187,10 @@ def load_suite(path: str | Path, overrides: dict[str, Any] | None = None) -> Sui
     constant = raw.setdefault("constant", list(CONSTANT_TARGETS))
     if constant and set(constant) - set(CONSTANT_TARGETS):
         raise _fail(path, f"constant must list targets of {list(CONSTANT_TARGETS)}, got {constant}")
+    try:
+        bound_options(raw.get("bound"), data.get("kind", "simulated"), str(path))
+    except BoundError as error:
+        raise SuiteError(str(error)) from None
     known = list_models()
     models = raw["models"]
     if not isinstance(models, list) or not models:
@@ -213,14 +221,14 @@ def load_suite(path: str | Path, overrides: dict[str, Any] | None = None) -> Sui
 
 
 def _refuse_repeated_models(path: Path, models: list[dict[str, Any]], protocols: list[str]) -> None:
-    """Two entries of one model in one protocol would share a job id and a folder: refused."""
-    seen: set[tuple[str, str]] = set()
+    """Two entries of one model (and tag) in one protocol would share a job id and a folder: refused."""
+    seen: set[tuple[str, str, str]] = set()
     for entry in models:
         for protocol in entry.get("protocols") or protocols:
-            key = (entry["model"], protocol)
+            key = (entry["model"], str(entry.get("tag") or ""), protocol)
             if key in seen:
                 raise _fail(path, f"model {entry['model']!r} is listed twice for protocol {protocol!r} (its jobs "
-                                  f"would share one id and folder); keep one entry, or give each its own protocols")
+                                  f"would share one id and folder); keep one entry, or give each its own tag")
             seen.add(key)
 
 
@@ -283,6 +291,10 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
     data_info = {"description": suite.data.get("description", ""), "kind": suite.data.get("kind", "simulated"),
                  "root": str(suite.data["root"]), "fingerprint": data_fingerprint}
     jobs: list[JobSpec] = []
+    bound = bound_options(raw.get("bound"), data_info["kind"], str(suite.path))
+    # constant and bound jobs take the windows of the student's config (else the first model's), not its training
+    reference = next((m for m in raw["models"] if m["model"] == "student"), raw["models"][0])
+    windows = {"model": reference["model"], "config": reference.get("config")}
     for protocol in raw["protocols"]:
         for seed in seeds:
             for entry in raw["models"]:
@@ -290,7 +302,7 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
                     continue
                 name = entry["model"]
                 args = model_args(suite, entry, protocol, seed)
-                job_id = f"{name}-{protocol}-s{seed}"
+                job_id = f"{name}{'_' + str(entry['tag']) if entry.get('tag') else ''}-{protocol}-s{seed}"
                 jobs.append(JobSpec(
                     job_id=job_id, kind="model", suite=suite.name, model=name,
                     method=entry.get("method") or METHOD_NAMES.get(name, name),
@@ -299,9 +311,6 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
                     budget_note=entry.get("budget_note", ""), data=data_info,
                     config_hash=_hash("model", args, _file_digest(_job_configs(raw, entry)), data_fingerprint)))
             for target in raw.get("constant") or []:
-                # the windows of the student's config (else the first model's), not its training arguments
-                reference = next((m for m in raw["models"] if m["model"] == "student"), raw["models"][0])
-                windows = {"model": reference["model"], "config": reference.get("config")}
                 args = model_args(suite, windows, protocol, seed)
                 job_id = f"constant_{target}-{protocol}-s{seed}"
                 jobs.append(JobSpec(
@@ -311,6 +320,18 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
                     job_dir=str(suite.out / "jobs" / job_id), threads=threads, target=target, data=data_info,
                     config_hash=_hash("constant", target, args, _file_digest(_job_configs(raw, windows)),
                                       data_fingerprint)))
+            if bound is not None:
+                args = model_args(suite, windows, protocol, seed)
+                job_id = f"bound-{protocol}-s{seed}"
+                jobs.append(JobSpec(
+                    job_id=job_id, kind="bound", suite=suite.name, model=BOUND_MODEL, method=BOUND_METHOD,
+                    category="reference", protocol=protocol, seed=seed, cli_args=args,
+                    job_dir=str(suite.out / "jobs" / job_id), threads=threads, data=data_info, options=bound,
+                    config_hash=_hash("bound", bound, args, _file_digest(_job_configs(raw, windows)),
+                                      data_fingerprint)))
+    repeated = sorted({job.job_id for job in jobs if [j.job_id for j in jobs].count(job.job_id) > 1})
+    if repeated:
+        raise _fail(suite.path, f"jobs {repeated} appear twice: give the models entries of one model distinct tags")
     profile = raw.get("profile", {})
     if profile is not False:
         options = dict(profile or {})

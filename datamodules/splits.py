@@ -4,7 +4,9 @@ The ``split`` of :class:`datamodules.mmaud.MMAUDDataModule` names a protocol (ke
 
 - ``by_sequence`` (default): whole recordings in train, val or test. Either explicit lists of
   sequence ids per split (or list files of the derived layout), or seeded fractions
-  ``{seed, val, test}`` stratified by drone. Honest, but needs several flights per drone.
+  ``{seed, val, test}`` stratified by drone. Honest, but needs several flights per drone. With
+  ``train_flights: N`` only N of the training recordings train (drones in turn, nested as N grows;
+  val and test unchanged): the data sizes of a learning curve.
 - ``time_blocks``: every recording is cut into ``blocks`` contiguous time blocks of equal length
   (or blocks of about ``block_seconds``), assigned at random (seeded per recording) to the splits by
   the fractions, so every flight contributes to every split its length allows (train keeps at least
@@ -37,7 +39,7 @@ CODES = {"train": TRAIN, "val": VAL, "test": TEST}
 #: how tables label each protocol (``random_windows`` says that its numbers are optimistic)
 LABELS = {"by_sequence": "by_sequence", "time_blocks": "time_blocks",
           "random_windows": "random_windows (test overlaps train)"}
-_COMMON_KEYS = {"protocol", "seed", "val", "test", "train"}
+_COMMON_KEYS = {"protocol", "seed", "val", "test", "train", "train_flights"}
 _BLOCK_KEYS = {"blocks", "block_seconds", "purge_seconds"}
 
 
@@ -57,6 +59,7 @@ class SplitConfig:
     blocks: int = 5
     block_seconds: float | None = None
     purge_seconds: float = 0.0
+    train_flights: int | None = None  #: by_sequence: train on this many of the training recordings only
 
     @classmethod
     def from_dict(cls, split: Mapping[str, Any] | None, window_span: float) -> SplitConfig:
@@ -81,6 +84,11 @@ class SplitConfig:
                 raise SplitError(f"split: with explicit lists, {numbers} must be lists of sequence ids or list "
                                  f"files too (or be left out)")
             return cls(protocol, int(split.get("seed", 0)), 0.0, 0.0, lists)
+        train_flights = split.get("train_flights")
+        if train_flights is not None and (protocol != "by_sequence" or lists or isinstance(train_flights, bool)
+                                          or not isinstance(train_flights, int) or train_flights < 1):
+            raise SplitError(f"split: train_flights must be a positive whole number, with protocol by_sequence and "
+                             f"fractions (not lists); got {train_flights!r} under {protocol}")
         if "train" in split:
             raise SplitError("split: train takes what val and test leave; give only val and test fractions "
                              "(or explicit lists for all splits)")
@@ -106,7 +114,7 @@ class SplitConfig:
             raise SplitError(f"split: purge_seconds must be at least the window's audio span ({window_span:g} s), "
                              f"or windows of different splits would share audio; got {purge!r}")
         return cls(protocol, int(split.get("seed", 0)), fractions["val"], fractions["test"], {}, int(blocks),
-                   None if block_seconds is None else float(block_seconds), float(purge))
+                   None if block_seconds is None else float(block_seconds), float(purge), train_flights)
 
     @property
     def fractions(self) -> dict[str, float]:
@@ -125,6 +133,8 @@ class SplitConfig:
         if self.protocol == "time_blocks":
             size = f"blocks of {self.block_seconds:g} s" if self.block_seconds else f"{self.blocks} blocks"
             text += f", {size}, purge {self.purge_seconds:g} s"
+        if self.train_flights is not None:
+            text += f", {self.train_flights} training flights"
         return text + ")"
 
 
@@ -193,7 +203,27 @@ def assign_sequences(names: Sequence[tuple[str, str]], drones: Sequence[str | No
             for i in order[cursor:cursor + counts[name]]:
                 result[int(i)] = name
             cursor += counts[name]
+    if config.train_flights is not None:
+        for index in training_order(result, drones, config.seed)[config.train_flights:]:
+            result[index] = None
     return result
+
+
+def training_order(splits: Sequence[str | None], drones: Sequence[str | None], seed: int) -> list[int]:
+    """The training recordings in the order ``train_flights`` takes them: drone by drone in turn, each drone's
+    in a seeded order, so N flights are the first N of N + 1 (nested data sizes) and cover the drones evenly."""
+    rng = np.random.default_rng([seed, 1])
+    groups: dict[str, list[int]] = {}
+    for i, (split, drone) in enumerate(zip(splits, drones, strict=True)):
+        if split == "train":
+            groups.setdefault(drone or "unknown", []).append(i)
+    queues = [list(rng.permutation(groups[drone])) for drone in sorted(groups)]
+    order: list[int] = []
+    while any(queues):
+        for queue in queues:
+            if queue:
+                order.append(int(queue.pop(0)))
+    return order
 
 
 # ---------------------------------------------------------------------------------- windows

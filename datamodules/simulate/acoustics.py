@@ -27,6 +27,7 @@ from datamodules.simulate.drones import DroneSpec
 from datamodules.simulate.microphones import mic_geometry
 from datamodules.simulate.propagation import GROUNDS, absorption_db_per_m, level_to_pressure, speed_of_sound
 from datamodules.simulate.trajectory import Trajectory
+from datamodules.snr import SnrSpectrum, snr_spectrum
 
 
 @dataclass
@@ -58,6 +59,7 @@ class AudioResult:
     sample_rate: float
     mic_positions: np.ndarray
     snr_db: np.ndarray  #: per channel, drone vs everything else, 100 Hz - fs/2
+    snr_spectrum: SnrSpectrum  #: per channel, second and 25 Hz bin, drone vs everything else (ADC included)
     ambient: AmbientRealisation
     flight_level_db: float
     clipped_samples: int
@@ -161,7 +163,9 @@ def render_audio(
     snr = _band_snr_db(drone, noise, fs, config.snr_band_hz)
     full_scale = np.sqrt(2.0) * level_to_pressure(config.full_scale_spl_db)
     digital, clipped = _quantise((drone + noise) / full_scale, config.bits)
-    return AudioResult(digital, fs, mics, snr, ambient, source.flight_level_db, clipped, full_scale)
+    drone_share = drone / full_scale
+    spectrum = snr_spectrum(drone_share, digital - drone_share, fs)  # noise = all but the drone, ADC error too
+    return AudioResult(digital, fs, mics, snr, spectrum, ambient, source.flight_level_db, clipped, full_scale)
 
 
 def _band_snr_db(signal: np.ndarray, noise: np.ndarray, fs: float, low_hz: float) -> np.ndarray:

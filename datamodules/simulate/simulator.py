@@ -3,7 +3,9 @@
 Every random draw comes from a ``numpy`` generator seeded by (dataset seed, sequence index,
 component), so the same seed gives the same bytes and changing one sensor's settings leaves the
 others' draws untouched. All parameters and the realised random values (ambient level, wind,
-SNR per microphone, source level offset) are stored in the recording's metadata.
+SNR per microphone, source level offset) are stored in the recording's metadata, with the drone's SNR per
+microphone, second and 25 Hz bin (``meta["audio"]["snr_spectrum"]``, :mod:`datamodules.snr`) that the
+localisation bound needs.
 """
 
 from __future__ import annotations
@@ -157,6 +159,7 @@ def simulate_recording(config: SimulationConfig, seed: int, index: int = 0, sequ
         "audio": {
             "snr_db": audio.snr_db.round(2).tolist(),
             "snr_db_mean": round(float(np.mean(audio.snr_db)), 2),
+            "snr_spectrum": audio.snr_spectrum.to_meta(),
             "ambient_dba": round(audio.ambient.level_dba, 2),
             "ambient_slope": round(audio.ambient.slope, 3),
             "wind_speed": round(audio.ambient.wind_speed, 3),

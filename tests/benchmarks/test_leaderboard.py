@@ -72,9 +72,22 @@ def profile(model: str, gmacs: float, params: float, latency: float) -> dict:
             "profile_inputs": "audio_mel 4x64x64"}
 
 
+def bound_row() -> dict:
+    """The physical limit (CRLB) of the by_sequence windows, below every method."""
+    row = {**PROVENANCE, "kind": "bound", "job_id": "bound-by_sequence-s0", "model": "crlb",
+           "method": "Physical limit (CRLB)", "category": "reference", "protocol": "by_sequence", "seed": 0,
+           "bound_median_m": 0.21, "snr_source": "simulator", "bound_band_hz": "full",
+           "predictions_path": "pred/bound.csv"}
+    for light in ("ideal", "dark"):
+        row.update({f"E_{light}": 0.3, f"RMSE_{light}": 0.3})
+    row.update({"E_ideal_avata": 0.25, "E_ideal_m300": 0.35, "E_ideal_r0_10": 0.2, "E_ideal_r10_20": 0.4})
+    return row
+
+
 def fixture_rows() -> list[dict]:
-    """Two protocols, two seeds of the student, a constant per protocol, profiles and one failed job."""
+    """Two protocols, two seeds of the student, a constant per protocol, the CRLB, profiles and one failed job."""
     return [
+        bound_row(),
         result("student", "by_sequence", 0, 1.0, 1.1, E_smooth_ideal=0.9, predictions_path="pred/student-s0.csv"),
         result("student", "by_sequence", 1, 1.5, 1.7, E_smooth_ideal=1.3, predictions_path="pred/student-s1.csv"),
         result("audionet", "by_sequence", 0, 2.0, 2.0, predictions_path="pred/audionet-s0.csv"),
@@ -116,6 +129,11 @@ def write_fixture(folder: Path) -> Path:
     append_rows(path, fixture_rows())
     write_predictions(folder / "pred" / "student-s0.csv", 0.8, smooth=True)
     write_predictions(folder / "pred" / "constant.csv", 0.0, constant=True)
+    write_predictions(folder / "pred" / "bound.csv", 0.0)
+    bounds = pd.read_csv(folder / "pred" / "bound.csv")
+    bounds["bound_m"] = np.linspace(0.1, 0.5, len(bounds))
+    bounds[["x", "y", "z"]] = np.nan
+    bounds.to_csv(folder / "pred" / "bound.csv", index=False)
     return path  # audionet-s0.csv and student-s1.csv are left missing on purpose
 
 
@@ -158,7 +176,8 @@ def test_markdown_matches_golden(report):
 def test_best_bold_second_underlined_and_constant_not_ranked(report):
     grid = markdown_grid(report.markdown, "Table 1:")
     srp = "SRP_PHAT (grid 1 m, 100% of pairs)"
-    assert list(grid) == ["VisualNet", "AudioNet", "Ours (student)", srp, "Constant (mean train GT)"]  # paper order
+    assert list(grid) == ["VisualNet", "AudioNet", "Ours (student)", srp, "Physical limit (CRLB)",
+                          "Constant (mean train GT)"]  # paper order, references last
     assert grid["Ours (student)"]["E ideal"] == "**1.25 ± 0.35**"
     assert grid["VisualNet"]["E ideal"] == "<u>1.80</u>"
     assert grid["AudioNet"]["E ideal"] == "2.00"
@@ -184,7 +203,7 @@ def test_mean_and_std_over_seeds_are_right(report):
     assert student["E_avg_mean"] == pytest.approx(1.325)
     assert student["E_avg_std"] == pytest.approx(0.55 / math.sqrt(2), rel=1e-5)
     assert student["gmacs"] == pytest.approx(0.25)
-    assert len(board) == 5 + 3  # one row per method x protocol
+    assert len(board) == 6 + 3  # one row per method x protocol
     constant = board[board["kind"] == "constant"]
     assert set(constant["protocol"]) == {"by_sequence", "random_windows"}
     assert constant["gmacs"].isna().all()
@@ -385,3 +404,16 @@ def test_thousand_row_results_render(tmp_path, capsys):
     seconds = time.perf_counter() - start
     assert code == 0 and out.count("## Table") >= 9
     print(f"\naaute leaderboard on a {len(pd.read_csv(path))}-row results.csv: {seconds:.2f} s")  # noqa: T201
+
+
+def test_the_physical_limit_is_in_every_table_of_its_protocol_and_never_ranked(report):
+    limit = "Physical limit (CRLB)"
+    main = markdown_grid(report.markdown, "Table 1:")
+    assert main[limit]["E ideal"] == "0.30" and main[limit]["Dx ideal"] == tables.MISSING
+    assert main["Ours (student)"]["E ideal"] == "**1.25 ± 0.35**"  # the lower bound does not take the bold
+    by_drone, by_range = markdown_grid(report.markdown, "Table 1a:"), markdown_grid(report.markdown, "Table 1b:")
+    assert by_drone[limit]["avata ideal"] == "0.25" and by_range[limit]["0–10 m ideal"] == "0.20"
+    assert "median 0.21 m" in report.markdown.split("## Table 1:", 1)[1].split("## Table 1a", 1)[0]
+    assert limit not in markdown_grid(report.markdown, "Table 2:")  # its own protocol only
+    assert "the black line is the per-window physical limit (CRLB)" in report.markdown  # figure captions
+    assert "the black line is the physical limit (CRLB, RMS per band)" in report.markdown

@@ -34,6 +34,7 @@ def write_suite(path: Path, **changes) -> Path:
         "seeds": [0],
         "smoothing": False,
         "constant": ["gt"],
+        "bound": False,
         "models": [{"model": "student", "config": str(REPO / "configs/model/student.yaml"),
                     "args": {"model.lr": changes.pop("lr", 1e-4)}}],
         "profile": False,
@@ -68,6 +69,17 @@ def test_a_crashed_job_keeps_the_others_rows_and_a_rerun_completes_only_it(label
     assert (fixed.out / model["predictions_path"]).is_file()
     assert set(finished_jobs(fixed.results_path)) == {"constant_gt-by_sequence-s0", "student-by_sequence-s0"}
     assert run_suite(fixed).skipped == ["student-by_sequence-s0", "constant_gt-by_sequence-s0"]
+
+
+def test_two_entries_of_one_model_need_distinct_tags(tmp_path, labelled_dir):
+    entry = {"model": "student", "config": str(REPO / "configs/model/student.yaml")}
+    twice = write_suite(tmp_path / "suite.yaml", root=str(labelled_dir), cache=str(tmp_path), models=[entry, entry])
+    with pytest.raises(SuiteError, match=r"'student' is listed twice.*its own tag"):
+        load_suite(twice)
+    tagged = write_suite(tmp_path / "suite.yaml", root=str(labelled_dir), cache=str(tmp_path),
+                         models=[entry, {**entry, "tag": "small"}])
+    ids = [job.job_id for job in expand_jobs(load_suite(tagged)) if job.kind == "model"]
+    assert ids == ["student-by_sequence-s0", "student_small-by_sequence-s0"]
 
 
 def test_suite_errors_name_the_key(tmp_path, labelled_dir):

@@ -17,6 +17,7 @@ from datamodules.splits import (
     VAL,
     SplitConfig,
     SplitError,
+    assign_sequences,
     assign_windows,
     block_counts,
 )
@@ -112,12 +113,30 @@ def test_split_settings_are_checked():
         ({"train": ["a"], "val": 0.2}, "must be lists"),
         ({"blocks": 4}, "time_blocks only"),
         ({"vall": 0.2}, "unknown key"),
+        ({"train_flights": 0}, "train_flights must be a positive"),
+        ({"protocol": "time_blocks", "train_flights": 2}, "train_flights .* under time_blocks"),
     ]
     for split, message in cases:
         with pytest.raises(SplitError, match=message):
             SplitConfig.from_dict(split, 1.0)
     with pytest.raises(SplitError, match="unknown protocol"):
         MMAUDDataModule("anywhere", split={"protocol": "kfold"})
+
+
+def test_train_flights_take_nested_training_sets_drone_by_drone_and_keep_val_and_test():
+    drones = ["avata", "m300", "mavic2"] * 6
+    names = [(f"seq{i}", f"f{i}") for i in range(len(drones))]
+    full = assign_sequences(names, drones, SplitConfig.from_dict({"val": 0.2, "test": 0.2}, 1.0))
+    previous: set[int] = set()
+    for flights in (1, 3, 6):
+        split = assign_sequences(names, drones, SplitConfig.from_dict({"val": 0.2, "test": 0.2,
+                                                                       "train_flights": flights}, 1.0))
+        train = {i for i, name in enumerate(split) if name == "train"}
+        assert len(train) == flights and previous <= train
+        assert all(split[i] == full[i] for i in range(len(drones)) if full[i] != "train")
+        assert all(full[i] == "train" for i in train) and split.count(None) == full.count("train") - flights
+        previous = train
+    assert {drones[i] for i in previous} == {"avata", "m300", "mavic2"}  # the drones in turn: two flights each
 
 
 # ------------------------------------------------------------------------------ the DataModule
