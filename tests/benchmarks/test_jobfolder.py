@@ -14,7 +14,7 @@ from benchmarks.jobfolder import LOCK_NAME, JobFolderBusy, clear_for_rerun, hold
 from benchmarks.jobs import base_row
 from benchmarks.results import read_results
 from benchmarks.suite import expand_jobs, load_suite
-from tests.benchmarks.test_runner import write_suite
+from tests.helpers.suites import write_suite
 
 REPO = Path(__file__).resolve().parents[2]
 HOLDER = ("import os, sys, time\n"

@@ -10,7 +10,7 @@ from benchmarks.learning import curve_points, main
 from benchmarks.results import append_rows, read_results
 from benchmarks.suite import expand_jobs, load_suite
 from tests.benchmarks.test_leaderboard import PROVENANCE, bound_row
-from tests.benchmarks.test_runner import REPO
+from tests.helpers.suites import REPO
 
 
 def test_the_learning_suite_trains_four_models_at_nested_data_sizes():

@@ -14,7 +14,7 @@ from benchmarks.suite import SuiteError, expand_jobs, load_suite
 from datamodules.formats.mcap_file import write_mcap
 from datamodules.recording import ArrayAudio
 from datamodules.simulate.simulator import SimulationConfig, simulate_recording
-from tests.benchmarks.test_runner import REPO, _write_suite
+from tests.helpers.suites import REPO, write_suite
 
 
 def test_bound_key_defaults_to_the_data_kind_and_checks_the_band():
@@ -35,7 +35,7 @@ def test_suites_expand_one_bound_job_per_protocol_and_seed(tmp_path):
     assert all(job.method == BOUND_METHOD and job.category == "reference" for job in bounds)
     assert not [job for job in expand_jobs(load_suite(REPO / "configs" / "benchmark" / "mmaud_v1.yaml"))
                 if job.kind == "bound"]
-    bad = _write_suite(tmp_path / "suite.yaml", root=str(tmp_path), cache=str(tmp_path), bound={"band_hz": 5})
+    bad = write_suite(tmp_path / "suite.yaml", root=str(tmp_path), cache=str(tmp_path), bound={"band_hz": 5})
     with pytest.raises(SuiteError, match="suite.yaml: bound.band_hz"):
         load_suite(bad)
 
@@ -56,7 +56,7 @@ def test_a_recording_without_microphone_positions_is_refused(tmp_path):
 
 
 def test_the_bound_job_bounds_every_test_window(labelled_dir, feature_cache, tmp_path):
-    suite = load_suite(_write_suite(tmp_path / "suite.yaml", root=str(labelled_dir), cache=str(feature_cache),
+    suite = load_suite(write_suite(tmp_path / "suite.yaml", root=str(labelled_dir), cache=str(feature_cache),
                                     bound=True))
     job = next(job for job in expand_jobs(suite) if job.kind == "bound")
     row = run_job(job)

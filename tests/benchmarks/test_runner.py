@@ -2,47 +2,17 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
-import yaml
 
 from benchmarks.results import read_results
 from benchmarks.runner import finished_jobs, run_suite
 from benchmarks.suite import SuiteError, check_job_args, expand_jobs, load_suite
 from tests.helpers.layouts import make_derived
+from tests.helpers.suites import REPO, SPLIT, write_suite
 
-REPO = Path(__file__).resolve().parents[2]
 #: the paper suite expands to dozens of jobs whose LightningCLI arguments are each parsed: slow
 SUITES = [pytest.param(path, marks=pytest.mark.slow) if path.stem == "paper" else path
           for path in sorted((REPO / "configs" / "benchmark").glob("*.yaml"))]
-SPLIT = {"train": ["sim11-0000-avata"], "val": ["sim11-0001-m300"], "test": ["sim11-0002-mavic2"]}
-
-
-def write_suite(path: Path, **changes) -> Path:
-    suite = {
-        "name": "tiny",
-        "out": str(path.parent / "out"),
-        "data": {"description": "three 4 s simulated flights", "kind": "simulated",
-                 "config": str(REPO / "configs/data/sim.yaml"), "root": changes.pop("root"),
-                 "init_args": {"window_seconds": 1.0, "batch_size": 4, "cache_dir": changes.pop("cache")}},
-        "trainer": {"config": [str(REPO / "configs/trainer/default.yaml")],
-                    "overrides": {"accelerator": "cpu", "max_epochs": 1, "limit_train_batches": 2,
-                                  "limit_val_batches": 1, "enable_model_summary": False}},
-        "protocols": {"by_sequence": SPLIT},
-        "lights": ["ideal", "dark"],
-        "seeds": [0],
-        "smoothing": False,
-        "constant": ["gt"],
-        "bound": False,
-        "models": [{"model": "student", "config": str(REPO / "configs/model/student.yaml"),
-                    "args": {"model.lr": changes.pop("lr", 1e-4)}}],
-        "profile": False,
-        "launcher": {"kind": "local", "parallel": 2, "threads_per_job": 1, "timeout_min": 10},
-    }
-    suite.update(changes)
-    path.write_text(yaml.safe_dump(suite))
-    return path
 
 
 @pytest.mark.slow  # two student trainings in job processes (the mmaud_v1 suite test covers a normal run)
