@@ -63,7 +63,6 @@ def write_suite(path: Path, root: Path, cache: Path, **changes) -> Path:
         "seeds": [0],
         "constant": ["gt", "pseudo"],
         "bound": False,
-        "constant": ["gt", "pseudo"],
         "models": [{"model": "student", "config": str(REPO / "configs/model/student.yaml"),
                     "args": {"model.lr": changes.pop("lr", 1e-4)}}],
         "profile": False,
