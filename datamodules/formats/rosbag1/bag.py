@@ -183,3 +183,16 @@ def livox_points(raw: memoryview | bytes, what: str) -> np.ndarray:
         raise RecordingError(f"{what}: CustomMsg of {len(raw)} bytes cannot hold {count} points")
     return np.frombuffer(raw, dtype=_LIVOX_POINT, count=count, offset=offset)
 
+
+
+def audio_payload(raw: memoryview | bytes, stamped: bool, what: str) -> memoryview:
+    """The sample bytes of a serialized ``AudioData`` (``uint8[] data``) or ``AudioDataStamped`` (header, then
+    ``AudioData``), read from the raw layout without the deserializer (it copies every byte array)."""
+    offset = raw_header(raw, what)[2] if stamped else 0
+    view = memoryview(raw)
+    if offset + 4 > len(view):
+        raise RecordingError(f"{what}: audio message too short ({len(view)} bytes)")
+    length = int.from_bytes(view[offset:offset + 4], "little")
+    if offset + 4 + length != len(view):
+        raise RecordingError(f"{what}: corrupt audio message ({length} sample bytes in a {len(view)}-byte message)")
+    return view[offset + 4:]
