@@ -7,7 +7,7 @@ libraries and prints the wall time, the CPU time, the real-time factor and the c
 resident memory (target: a 10-minute four-node bag at least 5x faster than real time on one core,
 memory flat in the recording's length: run two lengths to see it).
 
-Run: ``python -m benchmarks.studies.bag_conversion --seconds 600 60``.
+Run: ``python -m benchmarks.studies.bag_conversion --seconds 600 60 [--compression bz2]``.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ print(json.dumps({"wall_s": time.perf_counter() - wall, "cpu_s": time.process_ti
 """
 
 
-def write_node_bag(path: Path, seconds: float, nodes: int, seed: int = 0) -> None:
+def write_node_bag(path: Path, seconds: float, nodes: int, compression: str | None = None, seed: int = 0) -> None:
     """A bag of ``nodes`` mono AudioData topics (noise), ``seconds`` long, receive-time stamps with jitter."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -47,7 +47,10 @@ def write_node_bag(path: Path, seconds: float, nodes: int, seed: int = 0) -> Non
     audio_data = store.types["audio_common_msgs/msg/AudioData"]
     rng = np.random.default_rng(seed)
     count = int(round(seconds * 10))
-    with Writer(path) as writer:
+    writer = Writer(path)
+    if compression:
+        writer.set_compression(getattr(Writer.CompressionFormat, compression.upper()))
+    with writer:
         connections = [writer.add_connection(f"/audio{n + 1}/audio", "audio_common_msgs/msg/AudioData",
                                              typestore=store) for n in range(nodes)]
         for k in range(count):
@@ -59,10 +62,10 @@ def write_node_bag(path: Path, seconds: float, nodes: int, seed: int = 0) -> Non
                 writer.write(connection, stamp, raw)
 
 
-def measure(seconds: float, nodes: int, folder: Path) -> dict:
+def measure(seconds: float, nodes: int, folder: Path, compression: str | None = None) -> dict:
     bag = folder / f"rig_{int(seconds)}s.bag"
     start = time.perf_counter()
-    write_node_bag(bag, seconds, nodes)
+    write_node_bag(bag, seconds, nodes, compression)
     written_s = time.perf_counter() - start
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     out = subprocess.run([sys.executable, "-c", CHILD, str(bag), str(folder / f"rig_{int(seconds)}s.mcap")],
@@ -77,11 +80,13 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, nargs="+", default=[600.0, 60.0])
     parser.add_argument("--nodes", type=int, default=4)
+    parser.add_argument("--compression", choices=["bz2", "lz4"], help="chunk compression (MMAUD V1's bags: bz2)")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         for seconds in args.seconds:
-            row = measure(seconds, args.nodes, Path(tmp))
-            print(f"{row['nodes']} nodes x {row['seconds']:.0f} s ({row['bag_mb']:.0f} MB bag): convert wall "
+            row = measure(seconds, args.nodes, Path(tmp), args.compression)
+            kind = args.compression or "uncompressed"
+            print(f"{row['nodes']} nodes x {row['seconds']:.0f} s ({row['bag_mb']:.0f} MB {kind} bag): convert wall "
                   f"{row['wall_s']:.1f} s, CPU {row['cpu_s']:.1f} s, {row['realtime_factor']:.1f}x real time, "
                   f"peak RSS {row['peak_rss_mb']:.0f} MB (1 thread)")
 
