@@ -123,6 +123,8 @@ class BagAudio(AudioStream):
         self.sample_format = sample_format
         self._dtype = np.dtype(SAMPLE_FORMATS[sample_format])
         self._scale = full_scale(self._dtype)
+        #: the other audio topics of the same bag, read in the same pass (see :meth:`Bag.messages_together`)
+        self.together: list[str] = []
 
     def read(self, start: int, stop: int) -> np.ndarray:
         self._check_range(start, stop)
@@ -133,7 +135,11 @@ class BagAudio(AudioStream):
         hi = int(np.searchsorted(self._first, stop, side="left"))
         t_lo, t_hi = int(self._log_ns[lo]), int(self._log_ns[hi - 1])
         position = int(np.searchsorted(self._log_ns, t_lo, side="left"))
-        for _, _, raw in self._bag.messages([self._topic], start=t_lo, stop=t_hi + 1):
+        if len(self.together) > 1:
+            found = self._bag.messages_together(self._topic, t_lo, t_hi + 1, self.together)
+        else:
+            found = ((t, raw) for _, t, raw in self._bag.messages([self._topic], start=t_lo, stop=t_hi + 1))
+        for _, raw in found:
             if position >= hi:
                 break
             if position >= lo:

@@ -234,6 +234,8 @@ def _audio(owner: dict[str, Bag], topics: dict[str, str], index: BagIndex, optio
         meta = node_meta if not meta else {  # gaps add up over nodes; the first node's source stays as before
             **meta, "audio_gaps": meta["audio_gaps"] + node_meta["audio_gaps"],
             "audio_gap_seconds": meta["audio_gap_seconds"] + node_meta["audio_gap_seconds"]}
+    for node in nodes:  # the nodes of one bag are read in one pass over its chunks
+        node.stream.together = [n.name for n in nodes if owner[n.name] is owner[node.name]]
     audio, node_meta = combine_nodes(nodes, where, bool(options.get("nodes_share_clock", False)))
     meta.update(node_meta)
     return audio, meta
