@@ -40,7 +40,9 @@ def _nodes(meta: dict[str, Any]) -> str:
     if len(nodes) < 2:
         return "1"
     clock = "one-clock" if meta.get("nodes_share_clock") else "own-clocks"
-    return f"{len(nodes)} {clock} ±{1e3 * float(meta.get('audio_alignment_uncertainty_s', 0.0)):.2f}ms"
+    uncertainty = meta.get("audio_alignment_uncertainty_s")
+    spread = "±?" if uncertainty is None else f"±{1e3 * float(uncertainty):.2f}ms"
+    return f"{len(nodes)} {clock} {spread}"
 
 
 def scan_audio(audio: AudioStream, what: str) -> None:

@@ -163,6 +163,8 @@ def read_wav_folder(folder: str | Path, *, sequence_id: str | None = None, drone
                         (node.stream.num_samples - shortest) / node.stream.sample_rate)
     audio, meta = combine_nodes(nodes, str(folder), bool(layout.get("nodes_share_clock", False)))
     meta.update(source_format="wav_folder", source_path=str(folder.resolve()), wav_files=[p.name for p in files])
+    if len(files) > 1:  # files hold no stamps: how well they were aligned when extracted is not known here
+        meta["audio_alignment_uncertainty_s"] = None
     given = [p for p in POSITION_FILES if (folder / p).is_file()]
     if len(given) > 1 or (given and "mic_positions" in layout):
         raise RecordingError(f"{folder}: microphone positions given twice ({', '.join(given)}"

@@ -35,7 +35,7 @@ def write_folder(folder, *, per_node: bool = False, positions: bool = True, rate
 
 
 @pytest.mark.parametrize("per_node", [False, True])
-def test_wav_folder_reads_and_round_trips_through_convert(tmp_path, per_node):
+def test_wav_folder_reads_and_round_trips_through_convert(tmp_path, per_node, capsys):
     from datamodules.cli import main
 
     expected = write_folder(tmp_path / "flight", per_node=per_node)
@@ -51,6 +51,10 @@ def test_wav_folder_reads_and_round_trips_through_convert(tmp_path, per_node):
     assert np.array_equal(back.audio.read(0, FS), expected) and np.array_equal(back.audio.mic_positions, POSITIONS)
     assert np.array_equal(back.ground_truth.timestamps, rec.ground_truth.timestamps)
     assert back.meta["source_format"] == "wav_folder"
+    assert rec.meta["audio_alignment_uncertainty_s"] is None  # WAVs hold no stamps: the alignment is not known
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "flight")]) == 0
+    assert f"{2 if per_node else 4} own-clocks ±?" in capsys.readouterr().out
 
 
 def test_without_positions_and_of_unequal_length(tmp_path, caplog):
