@@ -50,6 +50,7 @@ def test_phase_recipe_refuses_unknown_positions(simulated_dir, tmp_path):
 
     recording = open_recording(discover_recordings(simulated_dir)[0])
     recording.meta["mic_positions_known"] = False
+    recording.lidar, recording.frames = {}, None  # audio and ground truth are all the windows need
     write_mcap(recording, tmp_path / "data" / "blind.mcap")
     module = MMAUDDataModule(str(tmp_path / "data"), inputs={"audio_phase": "gcc_phat"},
                              cache_dir=str(tmp_path / "cache"))
