@@ -45,11 +45,11 @@ def test_bad_positions_file_names_line(tmp_path):
         read_mic_positions(tmp_path / "m.csv")
 
 
-def test_phase_recipe_refuses_unknown_positions(simulated_dir, tmp_path):
+def test_phase_recipe_refuses_unknown_positions_and_warns_of_separate_clocks(simulated_dir, tmp_path, caplog):
     from datamodules.mmaud import MMAUDDataModule
 
     recording = open_recording(discover_recordings(simulated_dir)[0])
-    recording.meta["mic_positions_known"] = False
+    recording.meta.update(mic_positions_known=False, nodes_share_clock=False, audio_alignment_uncertainty_s=2e-4)
     recording.lidar, recording.frames = {}, None  # audio and ground truth are all the windows need
     write_mcap(recording, tmp_path / "data" / "blind.mcap")
     module = MMAUDDataModule(str(tmp_path / "data"), inputs={"audio_phase": "gcc_phat"},
@@ -58,3 +58,4 @@ def test_phase_recipe_refuses_unknown_positions(simulated_dir, tmp_path):
                                              rf"positions, but recording '{recording.sequence_id}' was read "
                                              r"without them"):
         module.setup("fit")
+    assert "uses time differences between audio nodes on separate clocks (alignment uncertainty 0.20 ms" in caplog.text
