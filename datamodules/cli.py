@@ -17,8 +17,12 @@ import sys
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from datamodules.errors import AauteError, ConfigError
+
+if TYPE_CHECKING:
+    from datamodules.simulate.clocks import ClockConfig
 
 log = logging.getLogger("aaute")
 
@@ -86,10 +90,25 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         camera=not args.no_camera,
         audio=AudioConfig(sample_rate=args.sample_rate, microphones=args.microphones, ground=args.ground,
                           ambient=ambient),
+        clocks=_clock_config(args),
     )
     paths = simulate_dataset(args.out, args.sequences, config, seed=args.seed, workers=args.workers)
     log.info("%d recordings in %s", len(paths), args.out)
     return _cmd_info(argparse.Namespace(paths=paths))
+
+
+def _clock_config(args: argparse.Namespace) -> ClockConfig | None:
+    """The nodes' clocks from the --clock-* and --stamp-jitter-ms options (None: one shared clock)."""
+    from datamodules.simulate.clocks import ClockConfig
+
+    clocks = ClockConfig(offset_ms=args.clock_offset_ms, offset_range_ms=args.clock_offset_range_ms,
+                         drift_ppm=args.clock_drift_ppm, drift_range_ppm=args.clock_drift_range_ppm,
+                         stamp_jitter_ms=args.stamp_jitter_ms)
+    try:
+        clocks.check()
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    return clocks if clocks.active() else None
 
 
 def _add_simulate(sub: argparse._SubParsersAction) -> None:
@@ -113,6 +132,17 @@ def _add_simulate(sub: argparse._SubParsersAction) -> None:
     sim.add_argument("--no-hvac", action="store_true", help="no rooftop HVAC unit")
     sim.add_argument("--no-camera", action="store_true")
     sim.add_argument("--workers", type=int, default=1, help="parallel processes")
+    clocks = sim.add_argument_group("node clocks (default: one shared, exact clock; truth in meta clocks_truth)")
+    clocks.add_argument("--clock-offset-ms", type=float, nargs="+", metavar="MS",
+                        help="fixed offset per node; one value X: node n is n*X ms off")
+    clocks.add_argument("--clock-offset-range-ms", type=float, default=0.0, metavar="MS",
+                        help="plus a random offset in [-MS, MS] per node, drawn per recording")
+    clocks.add_argument("--clock-drift-ppm", type=float, nargs="+", metavar="PPM",
+                        help="fixed drift per node; one value X: node n drifts n*X ppm")
+    clocks.add_argument("--clock-drift-range-ppm", type=float, default=0.0, metavar="PPM",
+                        help="plus a random drift in [-PPM, PPM] per node, drawn per recording")
+    clocks.add_argument("--stamp-jitter-ms", type=float, default=0.0, metavar="MS",
+                        help="mean receive latency of each node's 0.1 s messages (nodes aligned by receive times)")
     sim.set_defaults(func=_cmd_simulate)
 
 

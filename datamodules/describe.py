@@ -29,6 +29,22 @@ def _format(path: Path, source: str | None) -> str:
     return f"{layout} ({source})" if source and source != layout else layout
 
 
+def _mics(meta: dict[str, Any]) -> str:
+    """Whether the microphone positions were given ('given') or are missing ('unknown': no phase models)."""
+    return "unknown" if meta.get("mic_positions_known", True) is False else "given"
+
+
+def _nodes(meta: dict[str, Any]) -> str:
+    """Audio nodes, whether they share a clock, and the residual alignment uncertainty of separate streams."""
+    nodes = meta.get("audio_nodes") or []
+    if len(nodes) < 2:
+        return "1"
+    clock = "one-clock" if meta.get("nodes_share_clock") else "own-clocks"
+    uncertainty = meta.get("audio_alignment_uncertainty_s")
+    spread = "±?" if uncertainty is None else f"±{1e3 * float(uncertainty):.2f}ms"
+    return f"{len(nodes)} {clock} {spread}"
+
+
 def scan_audio(audio: AudioStream, what: str) -> None:
     """Read floating-point audio through, refusing NaN or infinite samples (integer formats cannot hold them).
 
@@ -67,6 +83,8 @@ def describe(path: Path, sample_frames: int = 5, **options: Any) -> dict[str, An
     audio_gaps = recording.meta.get("audio_gaps") or recording.meta.get("audio_missing_chunks")
     if audio is not None and audio_gaps:
         row["audio"] += f" gaps:{audio_gaps}"
+    row["mics"] = _mics(recording.meta) if audio is not None else "-"
+    row["nodes"] = _nodes(recording.meta) if audio is not None else "-"
     for sensor in ("mid360", "avia"):
         clouds = recording.lidar.get(sensor)
         if clouds is None or len(clouds) == 0:

@@ -48,6 +48,8 @@ from datamodules.features import (
     published_dark,
     scale_image,
 )
+from datamodules.formats.node_audio import warn_unshared_clocks
+from datamodules.formats.positions import require_mic_positions
 from datamodules.recording import Recording, RecordingError, Track
 from datamodules.splits import (
     SPLITS,
@@ -410,6 +412,9 @@ class MMAUDDataModule(L.LightningDataModule):
         for recipe in (self.audio_recipe, self.phase_recipe):
             if recipe is not None and audio is None:
                 raise RecordingError(f"{path}: the model needs audio ('{recipe.name}') but the recording has none")
+        if self.phase_recipe is not None:
+            warn_unshared_clocks(recording.meta, str(path), f"phase features ('{self.phase_recipe.name}')")
+            require_mic_positions(recording, path, f"phase features ('{self.phase_recipe.name}')")
         if self.phase_recipe is not None and audio.num_channels < 2:
             raise RecordingError(f"{path}: phase features ('{self.phase_recipe.name}') need at least 2 microphones "
                                  f"with known positions; the recording has {audio.num_channels}")

@@ -7,6 +7,7 @@ mcap            ``<name>.mcap``: the canonical format (:mod:`datamodules.formats
 ug2             ``seqN/{lidar_360,livox_avia,Image,ground_truth,class}/<ros_time>.npy|png``
 derived_npy     ``<root>/audio_npy/<seq>/`` with ``gt/``, ``pseudo_label/``, ... beside ``audio_npy/``
 rosbag1         ``<name>.bag``, or a folder of the bags of one flight (sensor bag + ground-truth bag)
+wav_folder      a folder of WAV files (one per channel or node), positions and ground-truth CSV beside
 ==============  ===============================================================================
 
 :func:`discover_recordings` lists the recordings under a root (any mix of layouts, or a list file
@@ -26,11 +27,11 @@ from datamodules.recording import Recording, RecordingError
 
 log = logging.getLogger(__name__)
 
-LAYOUTS = ("mcap", "ug2", "derived_npy", "rosbag1")
+LAYOUTS = ("mcap", "ug2", "derived_npy", "rosbag1", "wav_folder")
 EXPECTED = (
     "an .mcap recording, a UG2 sequence folder (seqN/{lidar_360,livox_avia,Image,ground_truth,class}/"
     "<ros_time>.npy), a derived npy root or sequence (audio_npy/<seq>/<idx>.npy beside gt/, pseudo_label/), "
-    "a list file of that layout (<seq>/<idx>.npy lines), or ROS 1 .bag files"
+    "a list file of that layout (<seq>/<idx>.npy lines), ROS 1 .bag files, or a folder of .wav files"
 )
 #: keyword options each reader accepts (open_recording passes on only these)
 READER_OPTIONS: dict[str, tuple[str, ...]] = {
@@ -38,16 +39,17 @@ READER_OPTIONS: dict[str, tuple[str, ...]] = {
     "ug2": ("sequence_id", "drone"),
     "derived_npy": ("sample_rate", "t0", "drone", "missing_audio"),
     "rosbag1": ("mapping", "sample_rate", "channels", "sample_format", "audio_stamp", "sequence_id", "drone"),
+    "wav_folder": ("sequence_id", "drone", "t0"),
 }
 
 
 def detect_layout(path: str | Path) -> str:
-    """The layout of one recording path: 'mcap', 'ug2', 'derived_npy' or 'rosbag1'.
+    """The layout of one recording path: 'mcap', 'ug2', 'derived_npy', 'rosbag1' or 'wav_folder'.
 
     Raises:
         RecordingError: ``path`` does not exist or is no single recording of a known layout.
     """
-    from datamodules.formats import derived_npy, ug2
+    from datamodules.formats import derived_npy, ug2, wav_folder
 
     path = Path(path)
     if not path.exists():
@@ -64,6 +66,8 @@ def detect_layout(path: str | Path) -> str:
         return "derived_npy"
     if any(p.suffix == ".bag" for p in path.iterdir()):
         return "rosbag1"
+    if wav_folder.is_wav_folder(path):
+        return "wav_folder"
     try:
         inside = discover_recordings(path)
     except RecordingError:
@@ -108,6 +112,10 @@ def open_recording(path: str | Path, **options: Any) -> Recording:
         from datamodules.formats.derived_npy import open_derived
 
         return open_derived(path, **accepted)
+    if layout == "wav_folder":
+        from datamodules.formats.wav_folder import read_wav_folder
+
+        return read_wav_folder(path, **accepted)
     from datamodules.formats.rosbag1 import open_rosbag1
 
     return open_rosbag1(path, **accepted)
@@ -130,7 +138,7 @@ def discover_recordings(root: str | Path) -> list[Path]:
     Raises:
         RecordingError: ``root`` does not exist or holds no recording of a known layout.
     """
-    from datamodules.formats import derived_npy, ug2
+    from datamodules.formats import derived_npy, ug2, wav_folder
 
     root = Path(root)
     if not root.exists():
@@ -158,7 +166,7 @@ def discover_recordings(root: str | Path) -> list[Path]:
             found.extend(derived_npy.sequence_folder(folder, seq) for seq in derived_npy.derived_sequences(folder))
             return
         entries = sorted(os.scandir(folder), key=lambda e: e.name)
-        if any(e.is_file() and e.name.endswith(".bag") for e in entries):
+        if any(e.is_file() and e.name.endswith(".bag") for e in entries) or wav_folder.is_wav_folder(folder):
             found.append(folder)
         for entry in entries:
             if entry.name.startswith("."):

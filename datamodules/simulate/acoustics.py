@@ -22,6 +22,7 @@ import numpy as np
 from scipy.signal import butter, istft, sosfilt, stft
 
 from datamodules.simulate.ambient import AmbientConfig, AmbientRealisation, render_ambient
+from datamodules.simulate.clocks import resample_at_clock
 from datamodules.simulate.drone_sound import DroneSource, SourceConfig, directivity_gain, lerp, uniform_lookup
 from datamodules.simulate.drones import DroneSpec
 from datamodules.simulate.microphones import mic_geometry
@@ -42,8 +43,9 @@ class AudioConfig:
     ground: str = "concrete"  #: 'concrete' (rooftop), 'asphalt', 'grass' or 'none'
     full_scale_spl_db: float = 120.0  #: SPL of a 0 dBFS sine (MEMS acoustic overload point) [M]
     bits: int = 16  #: ADC resolution; audio_common's default capture format is S16LE [M]
-    clock_offset_s: list[float] | None = None  #: per-channel clock offsets (None: shared clock)
-    clock_drift_ppm: list[float] | None = None
+    #: per-channel clock offsets (s; None: shared clock): sample k is taken at true time k / fs * (1 + drift) + offset
+    clock_offset_s: list[float] | None = None
+    clock_drift_ppm: list[float] | None = None  #: per-channel clock drifts (ppm); see ``clocks.py``
     block_seconds: float = 4.0
     control_rate: float = 1000.0
     snr_band_hz: float = 100.0  #: SNR is reported for 100 Hz - fs/2 (``simulation_sources.md`` 2.5)
@@ -123,6 +125,8 @@ def render_audio(
     drifts = np.zeros(channels) if config.clock_drift_ppm is None else np.asarray(config.clock_drift_ppm, float)
     if offsets.shape != (channels,) or drifts.shape != (channels,):
         raise ValueError(f"clock offsets/drifts need one value per channel ({channels})")
+    if offsets.any() or drifts.any():  # the microphone hears the noise at its own clock's times too
+        noise = resample_at_clock(noise, fs, offsets, drifts)
 
     dt = 1.0 / config.control_rate
     grid = np.arange(-0.1, duration + 0.1 + dt, dt)  # receiver clock, with margins

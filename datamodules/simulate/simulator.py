@@ -40,7 +40,9 @@ from datamodules.simulate import camera as camera_sim
 from datamodules.simulate import lidar as lidar_sim
 from datamodules.simulate import scene as scene_sim
 from datamodules.simulate.acoustics import AudioConfig, render_audio
+from datamodules.simulate.clocks import ClockConfig, draw_clocks
 from datamodules.simulate.drones import drone_spec
+from datamodules.simulate.microphones import mic_geometry
 from datamodules.simulate.trajectory import TrajectoryConfig, generate_trajectory
 from datamodules.workers import interruptible_pool
 
@@ -49,7 +51,7 @@ log = logging.getLogger(__name__)
 SIMULATOR_VERSION = "1"
 #: MMAUD V1 was recorded on 2023-08-24 (TAME ground-truth timestamps); simulated flights start there.
 DEFAULT_EPOCH = 1692845357.0
-COMPONENTS = ("trajectory", "audio", "mid360", "avia", "camera", "ground_truth")
+COMPONENTS = ("trajectory", "audio", "mid360", "avia", "camera", "ground_truth", "clocks")
 
 
 @dataclass
@@ -72,6 +74,7 @@ class SimulationConfig:
     camera_offset_s: float = 0.033
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     audio: AudioConfig = field(default_factory=AudioConfig)
+    clocks: ClockConfig | None = None  #: separate node clocks (None: one shared, exact clock)
 
     def check(self) -> None:
         """Refuse settings that cannot make a recording (non-positive or too short duration, rate <= 0).
@@ -89,7 +92,10 @@ class SimulationConfig:
 
     def fingerprint(self) -> str:
         """Short hash of every parameter, used to recognise a recording made with these settings."""
-        text = json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
+        settings = dataclasses.asdict(self)
+        if self.clocks is None:  # recordings made before node clocks existed keep their fingerprint
+            del settings["clocks"]
+        text = json.dumps(settings, sort_keys=True, default=str)
         return hashlib.sha256(f"{SIMULATOR_VERSION}:{text}".encode()).hexdigest()[:16]
 
 
@@ -120,8 +126,13 @@ def simulate_recording(config: SimulationConfig, seed: int, index: int = 0, sequ
         trajectory = generate_trajectory(duration + preroll + 1.0, rngs["trajectory"], config.trajectory)
         trajectory = trajectory.shifted(preroll)
 
+    audio_config, clocks = config.audio, None
+    if config.clocks is not None and config.clocks.active():
+        clocks = draw_clocks(config.clocks, mic_geometry(config.audio.microphones).shape[0], duration, rngs["clocks"])
+        audio_config = dataclasses.replace(audio_config, clock_offset_s=clocks.effective_offsets_s.tolist(),
+                                           clock_drift_ppm=clocks.drifts_ppm.tolist())
     with _timed("audio"):
-        audio = render_audio(spec, trajectory, duration, rngs["audio"], config.audio)
+        audio = render_audio(spec, trajectory, duration, rngs["audio"], audio_config)
     audio_stream = ArrayAudio(audio.samples, audio.sample_rate, t0, audio.mic_positions,
                               sample_format=f"S{config.audio.bits}LE" if config.audio.bits in (16, 32) else None)
 
@@ -171,6 +182,9 @@ def simulate_recording(config: SimulationConfig, seed: int, index: int = 0, sequ
         "sensor_poses": {sensor: list(lidar_sim.LidarModel.preset(sensor).position)
                          for sensor in config.lidar_sensors},
     }
+    if clocks is not None:  # the truth, for evaluation only; readers and models see only nodes_share_clock
+        meta["clocks_truth"] = clocks.meta()
+        meta["nodes_share_clock"] = False
     if audio.clipped_samples:
         log.warning("%s: %d audio samples clipped at full scale", sequence_id, audio.clipped_samples)
     return Recording(

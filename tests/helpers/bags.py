@@ -167,3 +167,38 @@ def write_flight(folder: Path, compression: str | None = None, *, audio: str = "
             truth["gt"].append((ns_to_seconds(stamp), xyz))
         gt_bag.close()
     return truth
+
+
+def write_nodes(path: Path, *, nodes: int = 4, messages: int = 30, starts: tuple[int, ...] = (),
+                ends: tuple[int, ...] = (), rates: tuple[int, ...] = (), silent: int | None = None,
+                offsets_ns: tuple[int, ...] = (), jitter_ns: int = 3_000_000,
+                drop: dict[int, tuple[int, ...]] | None = None, seed: int = 0) -> list[np.ndarray]:
+    """A bag of ``nodes`` mono S16LE ``audio_common_msgs/AudioData`` topics ``/audio1/audio`` ... (MMAUD V1's
+    layout: no header stamps, placed in time only by receive times), 0.1 s messages on one sample clock.
+
+    Node ``n`` sends messages ``starts[n]`` to ``ends[n]`` (defaults 0 and ``messages``) at ``rates[n]`` Hz
+    (default :data:`FS`), received ``offsets_ns[n]`` late plus a jitter below ``jitter_ns`` drawn alike for
+    every node; messages ``drop[n]`` are lost. Returns each node's samples (float, full scale 1) from its first
+    message on.
+    """
+    rng = np.random.default_rng(seed)
+    jitter = rng.integers(0, max(jitter_ns, 1), messages)
+    bag = BagWriter(path, None)
+    written = []
+    for n in range(nodes):
+        rate = rates[n] if rates else FS
+        size = rate // 10
+        first, last = (starts[n] if starts else 0), (ends[n] if ends else messages)
+        codes = (rng.uniform(-0.3, 0.3, (last - first) * size) * 32768).astype("<i2")
+        if n == silent:
+            codes[:] = 0
+        written.append(codes.astype(np.float64) / 32768)
+        for k in range(first, last):
+            if k in (drop or {}).get(n, ()):
+                continue
+            stamp = T0_NS + (k + 1) * 100_000_000 + int(jitter[k]) + (offsets_ns[n] if offsets_ns else 0)
+            chunk = codes[(k - first) * size:(k - first + 1) * size]
+            payload = TS.types["audio_common_msgs/msg/AudioData"](data=np.frombuffer(chunk.tobytes(), np.uint8))
+            bag.write(f"/audio{n + 1}/audio", "audio_common_msgs/msg/AudioData", payload, stamp)
+    bag.close()
+    return written

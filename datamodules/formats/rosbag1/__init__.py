@@ -10,8 +10,11 @@ hints where a type is ambiguous:
 ==============  ==========================================================  =============================
 mapping key     message types                                               default choice
 ==============  ==========================================================  =============================
-audio           audio_common_msgs AudioData / AudioDataStamped             the only one, else /audio/audio
-audio_info      audio_common_msgs AudioInfo                                 the only one, else beside audio
+audio           audio_common_msgs AudioData / AudioDataStamped             every /audioN/audio (nodes, in N
+                                                                            order), else the only one, else
+                                                                            /audio/audio
+audio_info      audio_common_msgs AudioInfo                                 beside each audio topic (one
+                                                                            topic: else the only one)
 mid360, avia    livox_ros_driver(2) CustomMsg, sensor_msgs PointCloud2     'avia' / 'mid360' / '360' in the
                                                                             name, else livox_ros_driver2 =
                                                                             Mid-360, livox_ros_driver = Avia
@@ -21,7 +24,18 @@ ground_truth    geometry_msgs PointStamped / PoseStamped                    the 
 
 A ``mapping`` (dict, or a YAML file with the same keys; ``aaute_layout.yaml`` beside the bags is
 read too) overrides any of these (``None`` drops a stream) and may carry the audio parameters
-``sample_rate``, ``channels``, ``sample_format``, ``audio_stamp`` and ``drone``/``sequence_id``.
+``sample_rate``, ``channels``, ``sample_format``, ``audio_stamp``, ``drone``/``sequence_id``, the
+microphone positions ``mic_positions`` (one ``[x, y, z]`` in metres per channel, in channel order;
+without them ``meta["mic_positions_known"]`` is false and phase models refuse the recording) and
+``nodes_share_clock`` (true when the audio nodes sample on one clock).
+
+Several audio nodes (MMAUD V1 records four mono ``/audioN/audio`` topics without header stamps):
+``audio:`` takes a list of topics, or of ``{topic, channels, sample_rate, sample_format,
+audio_stamp}`` entries, one per node, channels in list order (default 1 channel per node). Each
+node is rebuilt on its own sample clock as below, then all are put on one clock by their stamps
+(:mod:`datamodules.formats.node_audio`): ``meta["audio_nodes"]`` keeps each node's provenance
+(topic, rate, stamp jitter, drift, gaps), ``meta["audio_alignment_uncertainty_s"]`` what the
+stamps leave uncertain, ``meta["nodes_share_clock"]`` whether the nodes share a clock.
 A mapping that names a topic the bags lack, or a stream whose type does not fit, raises an error
 that lists the bags' topics.
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from datamodules.formats.ros_messages import SAMPLE_FORMATS, full_scale
-from datamodules.formats.rosbag1.bag import AUDIO_TYPES, Bag
+from datamodules.formats.rosbag1.bag import AUDIO_TYPES, Bag, audio_payload
 from datamodules.recording import (
     RATE_TOLERANCE,
     AudioStream,
@@ -45,6 +45,15 @@ class AudioLayout:
     gap_samples: int
     rate_by_stamps: float | None = None
     notes: list[str] = field(default_factory=list)
+    #: robust spread (1.4826 MAD) of the stamps about the sample clock: receive-time jitter
+    jitter_s: float = 0.0
+    #: how fast the sample clock runs against the stamps' clock (ppm), from a line through all stamps
+    drift_ppm: float | None = None
+
+    @property
+    def t0_uncertainty_s(self) -> float:
+        """Standard error of ``t0`` (the median of the stamps' offsets) from the jitter alone."""
+        return float(1.2533 * self.jitter_s / np.sqrt(max(self.first.size, 1)))
 
 
 def layout_audio(stamps_ns: np.ndarray, counts: np.ndarray, rate: float, stamp_at: str, what: str) -> AudioLayout:
@@ -87,10 +96,16 @@ def layout_audio(stamps_ns: np.ndarray, counts: np.ndarray, rate: float, stamp_a
     extra[1:][jumps] = np.rint(steps[jumps] * rate).astype(np.int64)
     first = cumulative + np.cumsum(extra)
     marked = first + counts if end else first
-    offsets = np.sort(stamps_ns - np.rint(marked * (1e9 / rate)).astype(np.int64))
-    t0 = float(ns_to_seconds(offsets[(offsets.size - 1) // 2]))
-    layout = AudioLayout(first, t0, int(jumps.sum()), int(extra.sum()), measured)
-    return layout
+    offsets = stamps_ns - np.rint(marked * (1e9 / rate)).astype(np.int64)
+    ordered = np.sort(offsets)
+    median = ordered[(ordered.size - 1) // 2]
+    t0 = float(ns_to_seconds(median))
+    relative = (offsets - median) / 1e9  # s, full precision
+    jitter = float(1.4826 * np.median(np.abs(relative)))
+    drift = None
+    if offsets.size >= RATE_MIN_MESSAGES and marked[-1] > marked[0]:
+        drift = float(-np.polyfit(marked / rate, relative, 1)[0] * 1e6)
+    return AudioLayout(first, t0, int(jumps.sum()), int(extra.sum()), measured, jitter_s=jitter, drift_ppm=drift)
 
 
 class BagAudio(AudioStream):
@@ -108,6 +123,8 @@ class BagAudio(AudioStream):
         self.sample_format = sample_format
         self._dtype = np.dtype(SAMPLE_FORMATS[sample_format])
         self._scale = full_scale(self._dtype)
+        #: the other audio topics of the same bag, read in the same pass (see :meth:`Bag.messages_together`)
+        self.together: list[str] = []
 
     def read(self, start: int, stop: int) -> np.ndarray:
         self._check_range(start, stop)
@@ -118,7 +135,11 @@ class BagAudio(AudioStream):
         hi = int(np.searchsorted(self._first, stop, side="left"))
         t_lo, t_hi = int(self._log_ns[lo]), int(self._log_ns[hi - 1])
         position = int(np.searchsorted(self._log_ns, t_lo, side="left"))
-        for _, _, raw in self._bag.messages([self._topic], start=t_lo, stop=t_hi + 1):
+        if len(self.together) > 1:
+            found = self._bag.messages_together(self._topic, t_lo, t_hi + 1, self.together)
+        else:
+            found = ((t, raw) for _, t, raw in self._bag.messages([self._topic], start=t_lo, stop=t_hi + 1))
+        for _, raw in found:
             if position >= hi:
                 break
             if position >= lo:
@@ -131,9 +152,8 @@ class BagAudio(AudioStream):
         return out
 
     def _decode(self, raw: memoryview | bytes, position: int) -> np.ndarray:
-        msg = self._bag.deserialize(raw, self._bag.types[self._topic], f"{self._topic}[{position}]")
-        data = np.asarray(msg.audio.data if self._stamped else msg.data, dtype=np.uint8)
-        samples = data.view(self._dtype).reshape(-1, self.num_channels).T
+        data = audio_payload(raw, self._stamped, f"{self._bag.path} {self._topic}[{position}]")
+        samples = np.frombuffer(data, dtype=self._dtype).reshape(-1, self.num_channels).T
         block = samples.astype(np.float32) / np.float32(self._scale) if self._scale != 1.0 else \
             samples.astype(np.float32)
         if not np.isfinite(block).all():
@@ -222,7 +242,10 @@ def open_audio(bag: Bag, topic: str, log_ns: np.ndarray, stamps_ns: np.ndarray, 
                     what, layout.gaps, layout.gap_samples / rate)
     meta = {
         "audio_source": {"topic": topic, "parameters_from": source, "stamp_marks": stamp_at,
-                         "rate_by_stamps": layout.rate_by_stamps},
+                         "rate_by_stamps": layout.rate_by_stamps, "channels": channels, "sample_rate": rate,
+                         "stamps": "header" if bag.types[topic] == AUDIO_TYPES[1] else "receive",
+                         "messages": int(counts.size), "jitter_s": layout.jitter_s, "drift_ppm": layout.drift_ppm,
+                         "t0": layout.t0, "t0_uncertainty_s": layout.t0_uncertainty_s},
         "audio_gaps": layout.gaps,
         "audio_gap_seconds": layout.gap_samples / rate,
     }

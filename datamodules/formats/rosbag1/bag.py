@@ -16,6 +16,8 @@ import numpy as np
 
 from datamodules.recording import RecordingError
 
+#: time (ns) read beyond the asked range when several topics are read together (nodes' stamps differ by jitter)
+SHARED_PAD_NS = 500_000_000
 #: message types of each kind of stream
 AUDIO_TYPES = ("audio_common_msgs/msg/AudioData", "audio_common_msgs/msg/AudioDataStamped")
 AUDIO_INFO_TYPE = "audio_common_msgs/msg/AudioInfo"
@@ -83,6 +85,7 @@ class Bag:
         self.path = Path(path)
         self._pid = -1
         self._reader: Any = None
+        self._shared: tuple[int, int, int, dict[str, list[tuple[int, bytes]]]] | None = None
         _, typesys = _rosbags()
         reader = self.reader()
         self.connections = list(reader.connections)
@@ -150,6 +153,22 @@ class Bag:
         except rosbag1.ReaderError as error:
             raise RecordingError(f"{self.path}: corrupt bag data: {error}") from error
 
+    def messages_together(self, topic: str, start: int, stop: int, together: Sequence[str]
+                          ) -> list[tuple[int, bytes]]:
+        """``(log time ns, raw)`` of ``topic``'s messages in ``[start, stop)``, read in one pass with the topics
+        ``together`` (and :data:`SHARED_PAD_NS` either side) and kept until a read outside that range: the audio
+        nodes of one bag are read for the same time range one after the other, and a compressed chunk is then
+        decompressed once rather than once per node."""
+        cache = self._shared
+        if cache is None or cache[0] != os.getpid() or not cache[1] <= start <= stop <= cache[2] \
+                or topic not in cache[3]:
+            lo, hi = start - SHARED_PAD_NS, stop + SHARED_PAD_NS
+            kept: dict[str, list[tuple[int, bytes]]] = {t: [] for t in {topic, *together}}
+            for name, log_ns, raw in self.messages(list(kept), start=lo, stop=hi):
+                kept[name].append((log_ns, bytes(raw)))
+            cache = self._shared = (os.getpid(), lo, hi, kept)
+        return [(t, raw) for t, raw in cache[3][topic] if start <= t < stop]
+
     def message_at(self, topic: str, log_ns: np.ndarray, position: int) -> memoryview | bytes:
         """Raw message number ``position`` of ``topic`` (positions as :meth:`messages` yields them)."""
         t = int(log_ns[position])
@@ -183,3 +202,16 @@ def livox_points(raw: memoryview | bytes, what: str) -> np.ndarray:
         raise RecordingError(f"{what}: CustomMsg of {len(raw)} bytes cannot hold {count} points")
     return np.frombuffer(raw, dtype=_LIVOX_POINT, count=count, offset=offset)
 
+
+
+def audio_payload(raw: memoryview | bytes, stamped: bool, what: str) -> memoryview:
+    """The sample bytes of a serialized ``AudioData`` (``uint8[] data``) or ``AudioDataStamped`` (header, then
+    ``AudioData``), read from the raw layout without the deserializer (it copies every byte array)."""
+    offset = raw_header(raw, what)[2] if stamped else 0
+    view = memoryview(raw)
+    if offset + 4 > len(view):
+        raise RecordingError(f"{what}: audio message too short ({len(view)} bytes)")
+    length = int.from_bytes(view[offset:offset + 4], "little")
+    if offset + 4 + length != len(view):
+        raise RecordingError(f"{what}: corrupt audio message ({length} sample bytes in a {len(view)}-byte message)")
+    return view[offset + 4:]

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from datamodules.formats.ros_messages import stamp_ns
-from datamodules.formats.rosbag1.bag import AUDIO_TYPES, Bag, raw_header
+from datamodules.formats.rosbag1.bag import AUDIO_TYPES, Bag, audio_payload, raw_header
 from datamodules.recording import check_monotonic, ns_to_seconds
 
 
@@ -24,8 +24,9 @@ class BagIndex:
 
     log_ns: dict[str, list[int]] = field(default_factory=dict)
     stamp_ns: dict[str, list[int]] = field(default_factory=dict)
-    audio_bytes: list[int] = field(default_factory=list)
-    audio_info: Any = None
+    audio_bytes: dict[str, list[int]] = field(default_factory=dict)  #: per audio topic, each message's sample bytes
+    audio_sounding: dict[str, bool] = field(default_factory=dict)  #: per audio topic, whether any sample is not 0
+    audio_info: dict[str, Any] = field(default_factory=dict)  #: first message of each AudioInfo topic
     frame_ids: dict[str, str] = field(default_factory=dict)
     track: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.int64), np.zeros((0, 3)))
 
@@ -52,15 +53,17 @@ def index_bags(bags: list[Bag], owner: dict[str, Bag], topics: dict[str, str]) -
             msgtype = bag.types[topic]
             what = f"{bag.path} {topic}"
             index.log_ns.setdefault(topic, []).append(log_ns)
-            if key == "audio_info":
-                if index.audio_info is None:
-                    index.audio_info = bag.deserialize(raw, msgtype, what)
+            if key.startswith("audio_info"):
+                if topic not in index.audio_info:
+                    index.audio_info[topic] = bag.deserialize(raw, msgtype, what)
                 continue
-            if key == "audio":
-                msg = bag.deserialize(raw, msgtype, what)
+            if key == "audio" or key.startswith("audio["):
                 stamped = msgtype == AUDIO_TYPES[1]
-                index.stamp_ns.setdefault(topic, []).append(stamp_ns(msg.header) if stamped else log_ns)
-                index.audio_bytes.append(len(msg.audio.data if stamped else msg.data))
+                data = audio_payload(raw, stamped, what)
+                index.stamp_ns.setdefault(topic, []).append(raw_header(raw, what)[0] if stamped else log_ns)
+                index.audio_bytes.setdefault(topic, []).append(len(data))
+                if not index.audio_sounding.get(topic):
+                    index.audio_sounding[topic] = bool(np.frombuffer(data, np.uint8).any())
                 continue
             if key == "ground_truth":
                 msg = bag.deserialize(raw, msgtype, what)

@@ -16,13 +16,24 @@ from typing import Any
 
 import numpy as np
 
-from datamodules.formats.rosbag1.audio import BagAudio, open_audio
+from datamodules.formats.node_audio import AudioNode, combine_nodes
+from datamodules.formats.positions import parse_mic_positions
+from datamodules.formats.rosbag1.audio import open_audio
 from datamodules.formats.rosbag1.bag import LIDAR_TYPES, Bag
 from datamodules.formats.rosbag1.index import BagIndex, index_bags
 from datamodules.formats.rosbag1.streams import BagImages, BagPointClouds
-from datamodules.formats.rosbag1.topics import LAYOUT_FILE, STREAM_TYPES, load_mapping, map_topics, topic_list
+from datamodules.formats.rosbag1.topics import (
+    LAYOUT_FILE,
+    STREAM_TYPES,
+    audio_keys,
+    audio_nodes,
+    load_mapping,
+    map_topics,
+    topic_list,
+)
 from datamodules.recording import (
     DRONE_TYPES,
+    AudioStream,
     ImageStream,
     PointCloudStream,
     Recording,
@@ -117,8 +128,12 @@ def read_rosbag1(
         "frame_ids": index.frame_ids,
         "mic_positions_known": False,
     }
-    audio, audio_meta = _audio(owner, topics, index, options)
+    audio, audio_meta = _audio(owner, topics, index, options, where)
     meta.update(audio_meta)
+    if audio is not None and options.get("mic_positions") is not None:
+        audio.mic_positions = parse_mic_positions(options["mic_positions"], audio.num_channels,
+                                                  f"{where} (mapping mic_positions)")
+        meta["mic_positions_known"] = True
     lidar = _lidar(owner, topics, index)
     frames = _camera(owner, topics, index)
     ground_truth = _ground_truth(owner, topics, index)
@@ -174,7 +189,7 @@ def _topics_of(bags: list[Bag]) -> tuple[dict[str, Bag], dict[str, str], dict[st
 def _check_topics(topics: dict[str, str], options: dict[str, Any], owner: dict[str, Bag], types: dict[str, str],
                   counts: dict[str, int], where: str) -> None:
     """An audio topic is mapped (unless the mapping drops it), and every mapped topic holds messages."""
-    if "audio" not in topics and not ("audio" in options and options["audio"] is None):
+    if not audio_keys(topics) and not ("audio" in options and options["audio"] is None):
         raise RecordingError(f"{where}: no audio topic (audio_common_msgs AudioData or AudioDataStamped); topics: "
                              f"{topic_list(types, counts)}. Map one (audio: <topic>) or pass audio: null to "
                              f"read the other sensors alone")
@@ -183,17 +198,47 @@ def _check_topics(topics: dict[str, str], options: dict[str, Any], owner: dict[s
             raise RecordingError(f"{owner[topic].path}: topic {topic} ({key}) holds no messages")
 
 
-def _audio(owner: dict[str, Bag], topics: dict[str, str], index: BagIndex, options: dict[str, Any]
-           ) -> tuple[BagAudio | None, dict[str, Any]]:
-    """The mapped audio topic as a stream, from what the opening pass kept of it, and its meta entries."""
-    if "audio" not in topics:
+def _audio(owner: dict[str, Bag], topics: dict[str, str], index: BagIndex, options: dict[str, Any], where: str
+           ) -> tuple[AudioStream | None, dict[str, Any]]:
+    """The mapped audio topic(s) as one stream on a common clock (:func:`combine_nodes`), and its meta entries.
+
+    Each node (topic) gets its own parameters (its entry of the ``audio:`` list, else the mapping's, else
+    defaults: 4 channels for one topic, 1 per topic for several) and its own rate check, gap filling and t0.
+    """
+    keys = audio_keys(topics)
+    if not keys:
         return None, {}
-    topic = topics["audio"]
-    log_ns = np.asarray(index.log_ns[topic], dtype=np.int64)
-    stamps_ns = np.asarray(index.stamp_ns[topic], dtype=np.int64)
-    nbytes = np.asarray(index.audio_bytes, dtype=np.int64)
-    return open_audio(owner[topic], topic, log_ns, stamps_ns, nbytes, index.audio_info, topics.get("audio_info"),
-                      options)
+    given = options.get("audio")
+    entries = audio_nodes(given, where) if given is not None else [{"topic": topics[k]} for k in keys]
+    nodes, meta = [], {}
+    for key, entry in zip(keys, entries, strict=True):
+        topic = topics[key]
+        if not index.audio_sounding.get(topic):
+            raise RecordingError(f"{owner[topic].path}: audio node {topic} is silent (every sample is zero); a "
+                                 f"dead microphone or driver: drop it from the mapping's audio: list")
+        node_options = {k: v for k, v in options.items() if k in ("sample_rate", "channels", "sample_format",
+                                                                    "audio_stamp")}
+        if len(keys) > 1:
+            node_options.setdefault("channels", 1)
+        node_options.update({k: v for k, v in entry.items() if k != "topic"})
+        info_key = key.replace("audio", "audio_info", 1)
+        info_topic = topics.get(info_key)
+        stream, node_meta = open_audio(owner[topic], topic, np.asarray(index.log_ns[topic], dtype=np.int64),
+                                       np.asarray(index.stamp_ns[topic], dtype=np.int64),
+                                       np.asarray(index.audio_bytes[topic], dtype=np.int64),
+                                       index.audio_info.get(info_topic), info_topic, node_options)
+        source = node_meta["audio_source"]
+        nodes.append(AudioNode(topic, stream, source["t0_uncertainty_s"],
+                               {**source, "gaps": node_meta["audio_gaps"],
+                                "gap_seconds": node_meta["audio_gap_seconds"]}))
+        meta = node_meta if not meta else {  # gaps add up over nodes; the first node's source stays as before
+            **meta, "audio_gaps": meta["audio_gaps"] + node_meta["audio_gaps"],
+            "audio_gap_seconds": meta["audio_gap_seconds"] + node_meta["audio_gap_seconds"]}
+    for node in nodes:  # the nodes of one bag are read in one pass over its chunks
+        node.stream.together = [n.name for n in nodes if owner[n.name] is owner[node.name]]
+    audio, node_meta = combine_nodes(nodes, where, bool(options.get("nodes_share_clock", False)))
+    meta.update(node_meta)
+    return audio, meta
 
 
 def _lidar(owner: dict[str, Bag], topics: dict[str, str], index: BagIndex) -> dict[str, PointCloudStream]:

@@ -8,6 +8,7 @@ MMAUD-like name hints (see the package docstring for the table of defaults).
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,12 @@ STREAM_TYPES: dict[str, tuple[str, ...]] = {
     "audio": AUDIO_TYPES, "audio_info": (AUDIO_INFO_TYPE,), "mid360": LIDAR_TYPES, "avia": LIDAR_TYPES,
     "image": IMAGE_TYPES, "ground_truth": GROUND_TRUTH_TYPES,
 }
-PARAMETER_KEYS = ("sample_rate", "channels", "sample_format", "audio_stamp", "drone", "sequence_id")
+PARAMETER_KEYS = ("sample_rate", "channels", "sample_format", "audio_stamp", "drone", "sequence_id", "mic_positions",
+                  "nodes_share_clock")
+#: per-node parameters an entry of an ``audio:`` list may carry beside its ``topic``
+NODE_KEYS = ("topic", "sample_rate", "channels", "sample_format", "audio_stamp")
+#: audio topics of separate nodes, found by themselves when a bag has several audio topics (MMAUD V1: /audio1/audio)
+NODE_TOPIC = re.compile(r"^/?audio(\d+)/audio$")
 LAYOUT_FILE = "aaute_layout.yaml"
 DEFAULT_AUDIO_TOPIC = "/audio/audio"
 #: name hints of each LiDAR (lower-case substrings of the topic)
@@ -63,6 +69,41 @@ def load_mapping(mapping: dict[str, Any] | str | Path | None, what: str) -> dict
     return dict(mapping)
 
 
+def audio_key(node: int, count: int) -> str:
+    """The stream key of audio node ``node`` of ``count``: 'audio' alone, else 'audio[0]', 'audio[1]', ..."""
+    return "audio" if count == 1 else f"audio[{node}]"
+
+
+def audio_keys(topics: dict[str, str]) -> list[str]:
+    """The audio stream keys of a topic mapping, in node (channel) order."""
+    keys = [k for k in topics if k == "audio" or k.startswith("audio[")]
+    return sorted(keys, key=lambda k: int(k[6:-1]) if k != "audio" else 0)
+
+
+def audio_nodes(value: Any, where: str) -> list[dict[str, Any]]:
+    """The mapping's ``audio:`` value as a list of nodes: a topic, a list of topics, or a list of
+    ``{topic: ..., channels: ..., sample_rate: ...}`` entries (per-node parameters).
+
+    Raises:
+        RecordingError: an entry that is neither a topic nor such a mapping, or an unknown key.
+    """
+    entries = value if isinstance(value, list) else [value]
+    if not entries:
+        raise RecordingError(f"{where}: mapping audio: an empty list; name at least one topic (or audio: null)")
+    nodes = []
+    for entry in entries:
+        node = {"topic": entry} if isinstance(entry, str) else entry
+        if not isinstance(node, dict) or not isinstance(node.get("topic"), str):
+            raise RecordingError(f"{where}: mapping audio: entry {entry!r} is neither a topic nor a mapping with "
+                                 f"a topic (topic: /audio1/audio, channels: 1)")
+        unknown = set(node) - set(NODE_KEYS)
+        if unknown:
+            raise RecordingError(f"{where}: mapping audio: entry for {node['topic']} has unknown key(s) "
+                                 f"{sorted(unknown)}; expected {list(NODE_KEYS)}")
+        nodes.append(dict(node))
+    return nodes
+
+
 def topic_list(types: dict[str, str], counts: dict[str, int]) -> str:
     """The bags' topics with their message types and counts, for error messages."""
     return "; ".join(f"{topic} ({msgtype}, {counts.get(topic, 0)} msgs)" for topic, msgtype in sorted(types.items()))
@@ -79,17 +120,24 @@ def _choose(candidates: list[str], hints: Sequence[str], exact: str | None = Non
 def _given_topics(types: dict[str, str], given: dict[str, Any], listing: str, where: str) -> dict[str, str]:
     """The topics the mapping names (``None`` drops a stream), each checked to exist and be of the right type."""
     chosen: dict[str, str] = {}
+    requested: list[tuple[str, Any]] = []
     for key in STREAM_TYPES:
-        if key not in given:
+        if key not in given or given[key] is None:
             continue
-        topic = given[key]
-        if topic is None:
-            continue
+        if key == "audio":
+            nodes = audio_nodes(given[key], where)
+            requested += [(audio_key(i, len(nodes)), node["topic"]) for i, node in enumerate(nodes)]
+        else:
+            requested.append((key, given[key]))
+    for key, topic in requested:
+        stream = "audio" if key.startswith("audio[") else key
         if topic not in types:
-            raise RecordingError(f"{where}: mapping {key}: {topic} names no topic of the bag(s); topics: {listing}")
-        if types[topic] not in STREAM_TYPES[key]:
-            raise RecordingError(f"{where}: mapping {key}: {topic} is {types[topic]}, expected one of "
-                                 f"{list(STREAM_TYPES[key])}; topics: {listing}")
+            raise RecordingError(f"{where}: mapping {stream}: {topic} names no topic of the bag(s); topics: {listing}")
+        if types[topic] not in STREAM_TYPES[stream]:
+            raise RecordingError(f"{where}: mapping {stream}: {topic} is {types[topic]}, expected one of "
+                                 f"{list(STREAM_TYPES[stream])}; topics: {listing}")
+        if topic in chosen.values():
+            raise RecordingError(f"{where}: mapping names {topic} twice; each topic feeds one stream")
         chosen[key] = topic
     return chosen
 
@@ -134,11 +182,22 @@ def map_topics(types: dict[str, str], counts: dict[str, int], given: dict[str, A
             chosen[key] = options[0]
 
     if "audio" not in given:
-        choose_one("audio", _choose(of_types(AUDIO_TYPES), ("audio",), DEFAULT_AUDIO_TOPIC))
-    if "audio_info" not in given and "audio" in chosen:
-        options = of_types((AUDIO_INFO_TYPE,))
-        namespace = chosen["audio"].rsplit("/", 1)[0] + "/"
-        choose_one("audio_info", [t for t in options if t.startswith(namespace)] or options)
+        candidates = of_types(AUDIO_TYPES)
+        nodes = sorted((t for t in candidates if NODE_TOPIC.match(t)), key=lambda t: int(NODE_TOPIC.match(t)[1]))
+        if len(nodes) > 1:
+            chosen.update({audio_key(i, len(nodes)): t for i, t in enumerate(nodes)})
+        else:
+            choose_one("audio", _choose(candidates, ("audio",), DEFAULT_AUDIO_TOPIC))
+    keys = audio_keys(chosen)
+    if "audio_info" not in given:
+        for key in keys:
+            options = of_types((AUDIO_INFO_TYPE,))
+            namespace = chosen[key].rsplit("/", 1)[0] + "/"
+            info_key = key.replace("audio", "audio_info", 1)
+            if len(keys) == 1:
+                choose_one(info_key, [t for t in options if t.startswith(namespace)] or options)
+            else:  # several nodes: only an AudioInfo in the node's own namespace is its own
+                choose_one(info_key, [t for t in options if t.startswith(namespace)])
     free = [s for s in ("avia", "mid360") if s not in given]
     assigned, unassigned = _lidar_candidates(types, of_types(LIDAR_TYPES), free)
     for sensor, options in assigned.items():
