@@ -61,6 +61,7 @@ def write_suite(path: Path, root: Path, cache: Path, **changes) -> Path:
         "protocols": {"by_sequence": SPLIT},
         "lights": ["ideal"],
         "seeds": [0],
+        "smoothing": False,
         "constant": ["gt", "pseudo"],
         "bound": False,
         "models": [{"model": "student", "config": str(REPO / "configs/model/student.yaml"),
