@@ -174,3 +174,52 @@ def test_any_channel_count_from_a_config(quiet_recording, tmp_path):
     rows = Rows()
     PhaseTracker(model, source, [rows]).run()
     assert len(rows.rows) == 6 and all(np.isfinite(r.raw).all() for r in rows.rows)
+
+
+def _small_config(tmp_path: Path) -> Path:
+    config = yaml.safe_load(CONFIG.read_text())
+    config["model"]["init_args"]["net_kwargs"]["null_windows"] = 20
+    path = tmp_path / "srp_phat_small.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_a_nan_block_skips_exactly_the_windows_that_contain_it(quiet_recording, tmp_path, caplog):
+    audio = open_recording(quiet_recording).audio
+    mics = tmp_path / "mics.txt"
+    np.savetxt(mics, audio.mic_positions)
+    samples = audio.read(0, int(3.0 * 48000)).copy()
+    samples[:, 24000:28800] = np.nan  # the block 0.5-0.6 s
+    source = PcmSource(io.BytesIO(samples.T.astype("<f4").tobytes()), 4, 48000.0, "f32le", mic_positions=mics)
+    model = load_phase_model(config=_small_config(tmp_path), source=source)
+    rows = Rows()
+    with caplog.at_level(logging.WARNING):
+        report = PhaseTracker(model, source, [rows]).run()
+    window = 23 * 4096
+    stops = np.arange(4800, samples.shape[1] + 1, 4800)
+    stops = stops[stops >= window]
+    spoiled = (stops - window < 28800) & (stops > 24000)
+    assert report.skipped_windows == int(spoiled.sum()) > 0
+    assert [round(r.timestamp, 3) for r in rows.rows] == [round(s / 48000, 3) for s in stops[~spoiled]]
+    assert all(np.isfinite(r.raw).all() for r in rows.rows)
+
+
+def test_track_cli_with_a_config_and_a_positions_file(quiet_recording, tmp_path, capsys):
+    from scipy.io import wavfile
+
+    from zoo.cli import main
+
+    audio = open_recording(quiet_recording).audio
+    wav, mics, wrong = tmp_path / "flight.wav", tmp_path / "mics.txt", tmp_path / "mics3.txt"
+    wavfile.write(wav, 48000, audio.read(0, int(2.5 * 48000)).T.copy())
+    np.savetxt(mics, audio.mic_positions)
+    np.savetxt(wrong, audio.mic_positions[:3])
+    config = _small_config(tmp_path)
+    assert main(["track", "--config", str(config), "--audio", str(wav), "--mic-positions", str(mics)]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out[0] == "timestamp,x,y,z,std_x,std_y,std_z,raw_x,raw_y,raw_z,detection_score,detected,state"
+    assert len(out) == 1 + 6 and out[1].split(",")[-1] in ("detected", "held", "fallback")
+    for args, message in (([], "pass --mic-positions FILE"), (["--mic-positions", str(wrong)], "expected 4 rows")):
+        assert main(["track", "--config", str(config), "--audio", str(wav), *args]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0]
