@@ -223,3 +223,41 @@ def test_track_cli_with_a_config_and_a_positions_file(quiet_recording, tmp_path,
         assert main(["track", "--config", str(config), "--audio", str(wav), *args]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and message in err[0]
+
+
+def test_the_threshold_is_computed_once_per_geometry_and_settings(quiet_recording, tmp_path):
+    from zoo.deploy.live_phase import prepare_threshold
+
+    source = RecordingSource(quiet_recording)
+    mics = torch.from_numpy(source.mic_positions.astype(np.float32)).double()
+    path = tmp_path / "thresholds.json"
+    first = load_phase_model(config=CONFIG, source=source).net
+    first.null_windows = 10
+    prepare_threshold(first, mics, path)
+    value = first.known_threshold(mics)
+    second = load_phase_model(config=CONFIG, source=source).net
+    second.null_windows = 10
+    second.threshold = None  # a second computation would fail: the stored value must serve
+    prepare_threshold(second, mics, path)
+    assert second.known_threshold(mics) == value
+    third = load_phase_model(config=CONFIG, source=source).net
+    third.null_windows, third.false_alarm = 10, 0.2  # other settings: computed afresh, stored beside
+    prepare_threshold(third, mics, path)
+    assert third.known_threshold(mics) != value and len(yaml.safe_load(path.read_text())) == 2
+
+
+def test_phase_student_weights_stream_with_estimate_rows(quiet_recording, tmp_path):
+    from zoo.deploy.live_phase import is_phase_model
+    from zoo.registry import get_model
+    from zoo.weights import save_weights_file
+
+    torch.manual_seed(0)
+    weights = save_weights_file(get_model("phase_student", channels=4), tmp_path / "phase_student.pt",
+                                net_kwargs={"channels": 4})
+    assert is_phase_model(None, None, weights)
+    source = RecordingSource(quiet_recording)
+    model = load_phase_model(weights=weights, source=source)
+    rows = Rows()
+    PhaseTracker(model, source, [rows]).run()
+    assert len(rows.rows) > 10 and {r.state for r in rows.rows} == {"estimate"}
+    assert all(np.isfinite(r.std).all() for r in rows.rows)

@@ -149,7 +149,9 @@ def is_phase_model(config: str | Path | None, ckpt_path: str | Path | None, weig
         hyper = stored.get("hyper_parameters", {}) if isinstance(stored, dict) else {}
         return hyper.get("net") in PHASE_NETS
     contents, entry = resolve_weights(None, weights, None)
-    return (contents.model or (entry.model if entry else None)) in PHASE_NETS
+    name = contents.net or (entry.name.split(".")[0] if entry else None)
+    inputs = contents.inputs or (entry.inputs if entry else {})
+    return name in PHASE_NETS or "audio_phase" in inputs
 
 
 # ============================================================================================ geometry
@@ -195,6 +197,46 @@ def check_geometry(model: PhaseTrackingModel, source: AudioSource) -> np.ndarray
                     "bends by %.2f lags across the array, under %g); expect directions, not distances",
                     source.name, aperture, far, curvature, MIN_CURVATURE_LAGS)
     return mics
+
+
+# ============================================================================================ thresholds
+
+
+def thresholds_file() -> Path:
+    """Where ``srp_phat``'s detection thresholds are kept between runs: ``$AAUTE_CACHE/srp_phat_thresholds.json``
+    or ``~/.cache/aaute/srp_phat_thresholds.json``."""
+    from zoo.weights.hub import weights_dir
+
+    return weights_dir().parent / "srp_phat_thresholds.json"
+
+
+def prepare_threshold(net: nn.Module, mics: torch.Tensor, path: Path | None = None) -> None:
+    """Give ``srp_phat`` its detection threshold for ``mics`` before the stream starts: from the thresholds
+    file when a run with the same settings and geometry stored it (:meth:`SRPPhat.threshold_key`), else
+    computed from the null statistic now (tens of seconds on one core) and stored there."""
+    if not hasattr(net, "threshold_key"):
+        return
+    import json
+
+    from datamodules.atomic import atomic_write
+
+    path = thresholds_file() if path is None else path
+    key = net.threshold_key(mics)
+    try:
+        stored = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        stored = {}
+    if isinstance(stored.get(key), float):
+        net.set_threshold(mics, stored[key])
+        log.info("srp_phat: detection threshold %.4f from %s", stored[key], path)
+        return
+    stored[key] = net.threshold(mics)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path) as tmp:
+            tmp.write_text(json.dumps(stored, indent=1, sort_keys=True))
+    except OSError as error:  # a read-only cache costs the next run the computation, nothing else
+        log.warning("srp_phat: could not store the detection threshold in %s (%s)", path, error)
 
 
 # ============================================================================================ rows
@@ -326,6 +368,7 @@ class PhaseTracker(Tracker):
         self.window = self.front.window
         self.gated = GatedSmoothing(self.smoother)
         self.mic_tensor = torch.from_numpy(self.mics.astype(np.float32))  # as the DataModule's batches carry them
+        prepare_threshold(model.net, self.mic_tensor.double())  # as the net keys the batch's geometry
 
     def front_end(self) -> IncrementalPhase:
         return IncrementalPhase(self.model.recipe, self.source.sample_rate, self.source.channels)  # type: ignore[arg-type]
