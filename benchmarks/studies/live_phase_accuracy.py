@@ -7,6 +7,8 @@ output (what ``aaute predict`` gives), of the gated online smoother at lag 0 and
 rows detected / held / fallback, and the coverage of the smoother's std (per axis, the share of errors within
 1 and 2 std, against 68.3 % and 95.4 % for a calibrated Gaussian) over the rows that have a std (measured and
 held rows; fallback rows carry none). ``--smoother PRESET`` overrides the config's ``live_smoother`` preset.
+``--rows DIR`` keeps each flight's raw rows there (``<flight>.npz``) and reuses them, so another smoother
+preset is scored without tracking again (the raw rows do not depend on the smoother).
 """
 
 from __future__ import annotations
@@ -19,14 +21,6 @@ import numpy as np
 import torch
 
 log = logging.getLogger(__name__)
-
-
-class _Keep:
-    def __init__(self):
-        self.rows = []
-
-    def write(self, row) -> None:
-        self.rows.append(row)
 
 
 def _smoothed(rows, preset: str, lag: float) -> tuple[np.ndarray, np.ndarray]:
@@ -47,18 +41,13 @@ def _coverage(error: np.ndarray, std: np.ndarray, k: float) -> float:
     return float((np.abs(error[rows]) <= k * std[rows]).mean()) if rows.any() else float("nan")
 
 
-def flight(path: Path, config: Path, preset: str | None) -> dict[str, float]:
+def flight(path: Path, config: Path, preset: str | None, store: Path | None = None) -> dict[str, float]:
     """One recording's figures (see the module docstring)."""
+    from benchmarks.studies.common import live_rows
     from datamodules.formats import open_recording
-    from datamodules.streams import RecordingSource
-    from zoo.deploy.live_phase import PhaseTracker, load_phase_model
 
-    source = RecordingSource(path)
-    model = load_phase_model(config=config, source=source)
-    preset = preset or model.live_smoother.get("preset", "robust")
-    keep = _Keep()
-    PhaseTracker(model, source, [keep], preset=preset).run()
-    rows = keep.rows
+    rows, configured = live_rows(path, config, store)
+    preset = preset or configured
     gt = open_recording(path).ground_truth
     t = np.array([r.timestamp for r in rows])
     truth = np.stack([np.interp(t, gt.timestamps, gt.xyz[:, a]) for a in range(3)], axis=1)
@@ -83,6 +72,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--config", type=Path, default=Path("configs/model/srp_phat.yaml"))
     parser.add_argument("--smoother", help="online smoother preset (default: the config's live_smoother, else robust)")
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--rows", type=Path, help="keep (and reuse) each flight's raw rows in this folder")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(args.threads)
@@ -93,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     print("|---" * (len(columns) + 1) + "|")
     results = []
     for path in paths:
-        result = flight(path, args.config, args.smoother)
+        result = flight(path, args.config, args.smoother, args.rows)
         results.append(result)
         print(f"| {path.stem} | " + " | ".join(f"{result[c]:.3f}" for c in columns) + " |", flush=True)
     weights = np.array([r["rows"] for r in results])
