@@ -97,8 +97,9 @@ def _p95_ms(values: list[float]) -> float:
     return float(np.percentile(values, 95) * 1e3)
 
 
-def phase_stage_times(model, source) -> dict[str, tuple[float, float]]:
-    """Median and p95 ms per update of each stage of the live phase localiser alone, over ``source``'s windows."""
+def phase_stage_times(model, source) -> dict[str, tuple[float, float, float]]:
+    """Median and p95 wall ms and median CPU ms per update of each stage of the live phase localiser alone,
+    over ``source``'s windows (CPU time counts this process only: on a shared machine, its own work)."""
     from datamodules.features import IncrementalPhase, PhaseWindows
     from datamodules.recording import ArrayAudio
     from zoo.deploy.live_phase import GatedSmoothing, PhaseRow, prepare_threshold
@@ -116,34 +117,44 @@ def phase_stage_times(model, source) -> dict[str, tuple[float, float]]:
     stops = stops[stops >= front.window]
     offline = PhaseWindows(ArrayAudio(samples, source.sample_rate, 0.0, source.mic_positions), model.recipe,
                            stops / source.sample_rate)
-    times: dict[str, list[float]] = {"front end (streaming)": [], "front end (offline recipe, per window)": [],
-                                     "search": [], "gate": [], "smoother": []}
+    names = ("front end (streaming)", "front end (offline recipe, per window)", "search", "gate", "smoother")
+    times: dict[str, list[float]] = {name: [] for name in names}  # wall seconds
+    cpu: dict[str, list[float]] = {name: [] for name in names}  # CPU seconds of this process
+
+    def clock() -> tuple[float, float]:
+        return time.perf_counter(), time.process_time()
+
+    def record(name: str, start: tuple[float, float]) -> None:
+        wall, process = clock()
+        times[name].append(wall - start[0])
+        cpu[name].append(process - start[1])
+
     done = 0
     for k, stop in enumerate(stops):
         front.push(samples[:, done:stop])
         done = stop
-        start = time.perf_counter()
+        start = clock()
         features = front.features()
-        times["front end (streaming)"].append(time.perf_counter() - start)
-        start = time.perf_counter()
+        record(names[0], start)
+        start = clock()
         offline(k)
-        times["front end (offline recipe, per window)"].append(time.perf_counter() - start)
-        start = time.perf_counter()
+        record(names[1], start)
+        start = clock()
         with torch.inference_mode():
             points, peak = net.search.peaks(features[None].permute(0, 2, 1, 3), mics)
-        times["search"].append(time.perf_counter() - start)
-        start = time.perf_counter()
+        record(names[2], start)
+        start = clock()
         hit = peak > threshold
         position, detected = net.hold_or_fallback(net.window_positions(points, hit), hit.any(dim=1),
                                                   torch.zeros(1, dtype=torch.long),
                                                   torch.tensor([stop / source.sample_rate], dtype=torch.float64))
         state = net.gate.states[0]
-        times["gate"].append(time.perf_counter() - start)
-        start = time.perf_counter()
+        record(names[3], start)
+        start = clock()
         gated.add(PhaseRow(stop / source.sample_rate, position[0].double().numpy(), float(peak.max() / threshold),
                            bool(detected[0]), state))
-        times["smoother"].append(time.perf_counter() - start)
-    return {name: (_median_ms(values), _p95_ms(values)) for name, values in times.items()}
+        record(names[4], start)
+    return {name: (_median_ms(times[name]), _p95_ms(times[name]), _median_ms(cpu[name])) for name in names}
 
 
 def phase_main(args: argparse.Namespace, path: Path) -> None:
@@ -156,8 +167,8 @@ def phase_main(args: argparse.Namespace, path: Path) -> None:
     print(f"recording {path}, model {model.name} ({model.recipe.name}) from {args.config}, torch threads "
           f"{torch.get_num_threads()}, OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}, load average "
           f"{load[0]:.2f} on {os.cpu_count()} CPUs")
-    for name, (median, p95) in phase_stage_times(model, RecordingSource(path)).items():
-        print(f"  {name}: median {median:.2f} ms, p95 {p95:.2f} ms per update")
+    for name, (median, p95, cpu) in phase_stage_times(model, RecordingSource(path)).items():
+        print(f"  {name}: median {median:.2f} ms, p95 {p95:.2f} ms wall, median {cpu:.2f} ms CPU per update")
     source = RecordingSource(path)
     model = load_phase_model(config=args.config, source=source)
     report = PhaseTracker(model, source, [_Discard()], batch=1).run()
