@@ -261,3 +261,17 @@ def test_phase_student_weights_stream_with_estimate_rows(quiet_recording, tmp_pa
     PhaseTracker(model, source, [rows]).run()
     assert len(rows.rows) > 10 and {r.state for r in rows.rows} == {"estimate"}
     assert all(np.isfinite(r.std).all() for r in rows.rows)
+
+
+def test_an_unknown_live_smoother_preset_is_refused(tmp_path):
+    from datamodules.errors import ConfigError
+
+    config = yaml.safe_load(CONFIG.read_text())
+    config["model"]["init_args"]["live_smoother"] = {"preset": "no_such_preset"}
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(config))
+    mics = tmp_path / "mics.txt"
+    np.savetxt(mics, np.array([[1.5, 1.5, 0.2], [-1.5, 1.5, 0.7], [-1.5, -1.5, 1.2], [1.5, -1.5, 1.7]]))
+    source = PcmSource(io.BytesIO(b""), 4, 48000.0, "s16le", mic_positions=mics)
+    with pytest.raises(ConfigError, match="live_smoother preset 'no_such_preset'"):
+        load_phase_model(config=path, source=source)

@@ -48,7 +48,7 @@ from zoo.deploy.tracking import (
     TrackingReport,
     load_net,
 )
-from zoo.smoothing import OnlineRow, OnlineSmoother
+from zoo.smoothing import ROBUST_PRESETS, OnlineRow, OnlineSmoother
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +132,9 @@ def load_phase_model(config: str | Path | None = None, ckpt_path: str | Path | N
     if wanted is not None and wanted != net.recipe.name:
         raise ConfigError(f"{origin}: data.inputs.audio_phase {wanted!r} differs from the net's recipe "
                           f"{net.recipe.name!r} (net_kwargs.input_recipes)")
+    preset = smoother.get("preset", "robust")
+    if preset not in ROBUST_PRESETS:
+        raise ConfigError(f"{origin}: live_smoother preset {preset!r} is not one of {sorted(ROBUST_PRESETS)}")
     bounds = data.get("bev_bounds") or [[-2.0, 8.0], [-5.0, 25.0]]  # MMAUDDataModule's default
     net.set_bounds(bounds)
     return PhaseTrackingModel(net, name, net.recipe, net.recipe.span_seconds, origin, smoother)
