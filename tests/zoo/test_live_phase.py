@@ -135,6 +135,9 @@ def test_gated_smoothing_feeds_measurements_only_and_keeps_time_order():
     assert [r.timestamp for r in out] == [t for t, _ in steps]
     held = [r for r in out if r.state == "held"]
     assert all(np.allclose(r.mean, out[2].mean) for r in held)  # the latest smoothed detection, 0.3 s
+    stds = [r.std for r in held]  # growing with the time since that detection
+    assert all(np.all(later > earlier) for earlier, later in zip(stds, stds[1:], strict=False))
+    assert np.all(stds[0] > out[2].std)
 
 
 def test_a_phase_model_refuses_a_source_without_positions(quiet_recording):

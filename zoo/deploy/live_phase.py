@@ -271,8 +271,10 @@ class GatedSmoothing:
     """The online smoother over the measured rows of a stream, the rows given back in time order.
 
     A measured row waits for its smoothed value (``lag`` seconds of later measurements, or until ``lag``
-    seconds of stream pass without one); a held row then takes the latest smoothed position and std, a
-    fallback row keeps its own position with std NaN.
+    seconds of stream pass without one); a held row then takes the latest smoothed position, its std grown
+    by what the smoother's Matern-5/2 prior lets the track move in the time since (variance
+    ``outputscale * (1 - rho(dt))`` per axis, ``rho`` the prior's correlation, times the calibration
+    factor squared); a fallback row keeps its own position with std NaN.
     """
 
     def __init__(self, smoother: OnlineSmoother):
@@ -280,7 +282,15 @@ class GatedSmoothing:
         self.queue: deque[PhaseRow] = deque()
         self.waiting: dict[float, PhaseRow] = {}
         self.last_fed: float | None = None
-        self.latest: tuple[np.ndarray, np.ndarray] | None = None
+        self.latest: tuple[float, np.ndarray, np.ndarray] | None = None  #: time, mean, std of the last measured row
+        lengthscale, outputscale, _ = smoother.hyperparameters.arrays()
+        self._lengthscale, self._outputscale = lengthscale, outputscale
+
+    def held_std(self, std: np.ndarray, elapsed: float) -> np.ndarray:
+        """The std of a position held ``elapsed`` seconds after the smoothed one of std ``std`` (see above)."""
+        r = np.sqrt(5.0) * max(elapsed, 0.0) / self._lengthscale
+        moved = self._outputscale * (1.0 - (1.0 + r + r * r / 3.0) * np.exp(-r))
+        return np.sqrt(std ** 2 + self.smoother.scale ** 2 * moved)
 
     def _fill(self, rows: list[OnlineRow]) -> None:
         for row in rows:
@@ -307,9 +317,9 @@ class GatedSmoothing:
         while self.queue and (self.queue[0].resolved or not self.queue[0].measured):
             row = self.queue.popleft()
             if row.measured:
-                self.latest = (row.mean, row.std)
+                self.latest = (row.timestamp, row.mean, row.std)
             elif row.state == "held" and self.latest is not None:
-                row.mean, row.std = self.latest
+                row.mean, row.std = self.latest[1], self.held_std(self.latest[2], row.timestamp - self.latest[0])
             else:
                 row.mean, row.std = row.raw.copy(), np.full(3, np.nan)
             out.append(row)
