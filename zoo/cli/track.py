@@ -103,7 +103,8 @@ def run_track(args: argparse.Namespace) -> int:
             mcap_writer = mcap_class(stack.enter_context(open(tmp, "wb")), args.topic)
             writers.append(mcap_writer)
         tracker = PhaseTracker if phase else Tracker
-        report = tracker(model, audio, writers, lag=args.lag, preset=args.preset, batch=args.batch).run()
+        preset = args.preset if phase or args.preset else "robust"  # a phase model falls back to its config's
+        report = tracker(model, audio, writers, lag=args.lag, preset=preset, batch=args.batch).run()
         if mcap_writer is not None:
             mcap_writer.finish()
     sys.stderr.write(f"aaute track: {report.summary()}\n")
@@ -133,7 +134,8 @@ def add_command(sub: argparse._SubParsersAction) -> None:
                                                             "else 2)")
     track.add_argument("--lag", type=float, default=0.0, help="seconds of future each smoothed position may use "
                                                               "(0: causal, the default)")
-    track.add_argument("--preset", choices=["robust"], default="robust", help="robust smoother preset")
+    track.add_argument("--preset", choices=["robust"],
+                       help="online smoother preset (default: a phase config's live_smoother, else robust)")
     track.add_argument("--realtime", action="store_true", help="recordings: deliver blocks at real-time pace")
     pcm = track.add_argument_group("raw PCM on stdin and WAV files")
     pcm.add_argument("--channels", type=int, help="interleaved channels of the PCM stream")

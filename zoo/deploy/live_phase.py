@@ -370,14 +370,14 @@ class PhaseTracker(Tracker):
     Args:
         model: :func:`load_phase_model`.
         source, writers, lag, hop_seconds, batch: as for :class:`~zoo.deploy.tracking.Tracker`.
-        preset: the online smoother's preset; the model's ``live_smoother`` preset wins when it names one.
+        preset: the online smoother's preset (default: the model's ``live_smoother`` preset, else ``robust``).
     """
 
     def __init__(self, model: PhaseTrackingModel, source: AudioSource, writers: list[Any], lag: float = 0.0,
-                 preset: str = "robust", hop_seconds: float = HOP_SECONDS, batch: int = 1):
+                 preset: str | None = None, hop_seconds: float = HOP_SECONDS, batch: int = 1):
         self.mics = check_geometry(model, source)
-        super().__init__(model, source, writers, lag, model.live_smoother.get("preset", preset),  # type: ignore[arg-type]
-                         hop_seconds, batch)
+        preset = preset or model.live_smoother.get("preset", "robust")
+        super().__init__(model, source, writers, lag, preset, hop_seconds, batch)  # type: ignore[arg-type]
         self.window = self.front.window
         self.gated = GatedSmoothing(self.smoother)
         self.mic_tensor = torch.from_numpy(self.mics.astype(np.float32))  # as the DataModule's batches carry them
