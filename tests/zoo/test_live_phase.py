@@ -16,7 +16,7 @@ from datamodules.formats import open_recording
 from datamodules.streams import PcmSource, RecordingSource
 from zoo.deploy.live_phase import GatedSmoothing, PhaseRow, PhaseTracker, check_geometry, load_phase_model
 from zoo.deploy.tracking import TrackingError
-from zoo.smoothing import OnlineSmoother
+from zoo.smoothing import ROBUST_PRESETS, OnlineSmoother
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "srp_phat.yaml"
 NULL_WINDOWS = 40  #: fewer null windows than the config's 300: the same on both sides, a faster test
@@ -196,8 +196,10 @@ def test_a_nan_block_skips_exactly_the_windows_that_contain_it(quiet_recording, 
     source = PcmSource(io.BytesIO(samples.T.astype("<f4").tobytes()), 4, 48000.0, "f32le", mic_positions=mics)
     model = load_phase_model(config=_small_config(tmp_path), source=source)
     rows = Rows()
+    tracker = PhaseTracker(model, source, [rows])
+    assert tracker.smoother.hyperparameters == ROBUST_PRESETS["srp_phat"]  # the config's live_smoother
     with caplog.at_level(logging.WARNING):
-        report = PhaseTracker(model, source, [rows]).run()
+        report = tracker.run()
     window = 23 * 4096
     stops = np.arange(4800, samples.shape[1] + 1, 4800)
     stops = stops[stops >= window]

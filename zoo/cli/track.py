@@ -134,7 +134,7 @@ def add_command(sub: argparse._SubParsersAction) -> None:
                                                             "else 2)")
     track.add_argument("--lag", type=float, default=0.0, help="seconds of future each smoothed position may use "
                                                               "(0: causal, the default)")
-    track.add_argument("--preset", choices=["robust"],
+    track.add_argument("--preset", choices=["robust", "srp_phat"],
                        help="online smoother preset (default: a phase config's live_smoother, else robust)")
     track.add_argument("--realtime", action="store_true", help="recordings: deliver blocks at real-time pace")
     pcm = track.add_argument_group("raw PCM on stdin and WAV files")
