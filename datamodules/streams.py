@@ -6,7 +6,8 @@ the project reads (as fast as possible or at real time), :class:`WavSource` a WA
 :class:`PcmSource` raw interleaved PCM from a pipe, a socket or stdin (the byte stream
 :mod:`datamodules.audio_export` writes). Each source also says where its microphones are: the
 recording's own positions, a text file of one ``x y z`` row per channel, or the simulator's default
-array.
+array, and whether they are known (``mic_positions_known``: a default array or a recording that says
+its positions are unknown is not; the phase models refuse such a source).
 
 Bad input: a PCM byte count that is not a whole number of frames of ``channels`` x the sample size is
 refused at the end of the stream (wrong ``--channels`` or ``--format``); float samples far beyond full
@@ -49,6 +50,8 @@ class AudioSource(ABC):
         channels: microphones.
         t0: time of sample 0 (s); positions are stamped ``t0 + stop / sample_rate``.
         mic_positions: channels x 3 (m), and ``mic_source`` says where they came from.
+        mic_positions_known: whether they were measured (a file, or a recording that knows them) rather than
+            a default standing in for unknown positions.
         leftover: samples of a last, incomplete block (dropped), set when the stream ends.
         stalled: whether the stream ended by stalling rather than by its end.
     """
@@ -59,6 +62,7 @@ class AudioSource(ABC):
     t0: float = 0.0
     mic_positions: np.ndarray
     mic_source: str = ""
+    mic_positions_known: bool = True
     leftover: int = 0
     stalled: bool = False
 
@@ -74,9 +78,11 @@ class RecordingSource(AudioSource):
         path: the recording.
         realtime: deliver each block when its last sample would arrive from a live array.
         reader_options: options of the non-MCAP readers (sample rate of the derived layout, ...).
+        mic_positions: a positions file used when the recording says its own are unknown.
     """
 
-    def __init__(self, path: str | Path, realtime: bool = False, reader_options: dict[str, Any] | None = None):
+    def __init__(self, path: str | Path, realtime: bool = False, reader_options: dict[str, Any] | None = None,
+                 mic_positions: str | Path | None = None):
         from datamodules.formats import open_recording
 
         self.name = str(path)
@@ -89,6 +95,10 @@ class RecordingSource(AudioSource):
         self.t0 = float(self.audio.t0)
         self.mic_positions = np.asarray(self.audio.mic_positions, dtype=np.float64)
         self.mic_source = "the recording"
+        self.mic_positions_known = bool(recording.meta.get("mic_positions_known", True))
+        if not self.mic_positions_known and mic_positions is not None:
+            self.mic_positions = read_mic_positions(mic_positions, self.channels)
+            self.mic_source, self.mic_positions_known = str(mic_positions), True
         self.realtime = realtime
 
     def blocks(self, size: int) -> Iterator[np.ndarray]:
@@ -156,6 +166,7 @@ class WavSource(AudioSource):
             raise StreamError(f"{path}: {kind} WAV samples; expected signed integer or float PCM")
         self.t0 = float(t0)
         self.mic_positions, self.mic_source = default_mic_positions(self.channels, mic_positions, self.name)
+        self.mic_positions_known = mic_positions is not None
 
     def blocks(self, size: int) -> Iterator[np.ndarray]:
         total = self.data.shape[0]
@@ -190,6 +201,7 @@ class PcmSource(AudioSource):
         self.t0 = float(t0)
         self.stall_timeout = float(stall_timeout)
         self.mic_positions, self.mic_source = default_mic_positions(self.channels, mic_positions, name)
+        self.mic_positions_known = mic_positions is not None
         self.bytes_read = 0
         try:
             self._fd: int | None = stream.fileno()

@@ -61,6 +61,8 @@ class TrajectoryTask(L.LightningModule):
             (:class:`~zoo.callbacks.PredictionCsvWriter`).
         predictions_topic: also store each sequence's predictions in its MCAP recording under this
             topic (e.g. ``/prediction/student``) at predict time (:class:`~zoo.callbacks.PredictionTopicWriter`).
+        live_smoother: the online smoother ``aaute track`` uses for this model (``{"preset": name}``, a name of
+            :data:`zoo.smoothing.ROBUST_PRESETS`); stored with the model, unused by training and testing.
     """
 
     def __init__(
@@ -76,6 +78,7 @@ class TrajectoryTask(L.LightningModule):
         smoother: dict[str, Any] | None = None,
         predictions_dir: str | None = None,
         predictions_topic: str | None = None,
+        live_smoother: dict[str, Any] | None = None,
     ):
         super().__init__()
         if not 0.0 <= alpha <= 1.0:

@@ -13,7 +13,12 @@ section that quotes its numbers (or only its command):
 - ``student_check --data DIR``: does the student learn (alpha 1, alpha 0, constant)? same section, command only
 - ``smoothing_bench [--accuracy]``: the smoothers' error, coverage, speed? "Train and test a model", commands only
 - ``teacher_bench [--quick]``: the LiDAR teacher's error, coverage, speed, memory? "Pseudo-labels from LiDAR", command
-- ``tracking_bench --seconds 60``: how fast is ``aaute track``, end to end and per stage? "Real-time tracking"
+- ``tracking_bench --seconds 60 [--config configs/model/srp_phat.yaml]``: how fast is ``aaute track``, end to end
+  and per stage (mel or live phase)? "Real-time tracking"
+- ``live_phase_accuracy --data DIR``: live srp_phat's raw and smoothed error and the std's coverage?
+  "Real-time tracking", phase table
+- ``live_phase_calibration --data DIR``: the ``srp_phat`` online smoother preset from development flights?
+  "Real-time tracking", command only
 - ``datamodule_bench --data DIR``: the DataModule's feature, cache and epoch speed and memory? not in the README
 - ``recording_bench``: the recording pipeline's speed and size? ``make bench``; "Tests, lint, benchmarks", command only
 """

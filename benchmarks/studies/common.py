@@ -1,4 +1,4 @@
-"""What more than one study uses: the learning checks' split and a DataModule over test recordings.
+"""What more than one study uses: the learning checks' split, a DataModule over test recordings, live phase rows.
 
 The studies never import one another; a helper that two of them share lives here.
 """
@@ -6,6 +6,8 @@ The studies never import one another; a helper that two of them share lives here
 from __future__ import annotations
 
 from pathlib import Path
+
+import numpy as np
 
 from datamodules.mmaud import MMAUDDataModule, discover
 
@@ -26,3 +28,34 @@ def recordings_module(data: list[Path], recipe: str, cache: Path | None, batch_s
                              cache_dir=None if cache is None else str(cache), **rate)
     module.setup("test")
     return module
+
+
+class _Rows:
+    def __init__(self):
+        self.rows: list = []
+
+    def write(self, row) -> None:
+        self.rows.append(row)
+
+
+def live_rows(path: Path, config: Path, store: Path | None) -> tuple[list, str]:
+    """The live localiser's rows of one recording (from ``store`` when kept there) and the config's preset."""
+    from datamodules.streams import RecordingSource
+    from zoo.deploy.live_phase import PhaseRow, PhaseTracker, load_phase_model
+
+    source = RecordingSource(path)
+    model = load_phase_model(config=config, source=source)
+    preset = model.live_smoother.get("preset", "robust")
+    kept = None if store is None else store / f"{path.stem}.npz"
+    if kept is not None and kept.is_file():
+        data = np.load(kept)
+        return [PhaseRow(float(t), raw, float(score), bool(hit), str(state)) for t, raw, score, hit, state in
+                zip(data["t"], data["raw"], data["score"], data["detected"], data["state"], strict=True)], preset
+    keep = _Rows()
+    PhaseTracker(model, source, [keep], preset=preset).run()
+    if kept is not None:
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(kept, t=[r.timestamp for r in keep.rows], raw=[r.raw for r in keep.rows],
+                 score=[r.score for r in keep.rows], detected=[r.detected for r in keep.rows],
+                 state=[r.state for r in keep.rows])
+    return keep.rows, preset

@@ -4,6 +4,8 @@
   pieces;
 - :mod:`~datamodules.features.incremental`: the streaming twin of the mel front end (each STFT frame of a stream
   computed once), equal to :func:`mel_features` on the same samples;
+- :mod:`~datamodules.features.incremental_phase`: the streaming twin of the phase recipe (each frame's
+  cross-spectra once, the causal static mean folded as audio arrives), equal to :class:`PhaseWindows`;
 - :mod:`~datamodules.features.image`: camera image recipes and the darkness protocols;
 - :mod:`~datamodules.features.phase`: GCC-PHAT phase features of every microphone pair.
 """
@@ -19,6 +21,7 @@ from datamodules.features.image import (
     scale_image,
 )
 from datamodules.features.incremental import IncrementalMel
+from datamodules.features.incremental_phase import IncrementalPhase
 from datamodules.features.mel import (
     MEL_RECIPES,
     MelRecipe,
@@ -50,6 +53,7 @@ __all__ = [
     "GccPhat",
     "ImageRecipe",
     "IncrementalMel",
+    "IncrementalPhase",
     "MelRecipe",
     "PhaseRecipe",
     "PhaseWindows",

@@ -32,7 +32,8 @@ def open_source(audio: str, *, channels: int | None = None, rate: float | None =
     Args:
         audio: ``-``, a WAV file or a recording of any layout the project reads.
         channels, rate, sample_format: raw PCM on stdin only (``channels`` and ``rate`` are required there).
-        mic_positions: a text file of one ``x y z`` row per channel (PCM and WAV; a recording has its own).
+        mic_positions: a text file of one ``x y z`` row per channel (PCM, WAV, and recordings whose own
+            positions are unknown).
         t0: time of the first sample of PCM and WAV audio (s).
         stall_timeout: seconds without data after which stdin counts as ended.
         realtime: recordings: deliver blocks at real-time pace.
@@ -53,9 +54,10 @@ def open_source(audio: str, *, channels: int | None = None, rate: float | None =
         raise FileNotFoundError(f"{path}: no such audio file or recording")
     if path.suffix.lower() == ".wav":
         return WavSource(path, mic_positions, t0)
-    if mic_positions is not None:
+    source = RecordingSource(path, realtime=realtime, mic_positions=mic_positions)
+    if mic_positions is not None and source.mic_source == "the recording":
         log.info("%s: the recording's own microphone positions are used (--mic-positions ignored)", path)
-    return RecordingSource(path, realtime=realtime)
+    return source
 
 
 RATE_TOLERANCE = 0.01  #: audio more than 1 % off the model's rate is refused
@@ -77,17 +79,28 @@ def run_track(args: argparse.Namespace) -> int:
     import torch
 
     from datamodules.atomic import atomic_write
+    from zoo.deploy.live_phase import PhaseCsvWriter, PhaseMcapWriter, PhaseTracker, is_phase_model, load_phase_model
     from zoo.deploy.tracking import CsvWriter, McapTrackWriter, Tracker, load_tracking_model
 
     torch.set_num_threads(max(1, int(args.threads)))
-    model = load_tracking_model(args.ckpt_path, args.weights, args.recipe, args.window_seconds)
-    source = open_source(args.audio, channels=args.channels, rate=args.rate, sample_format=args.format,
-                         mic_positions=args.mic_positions, t0=args.t0, stall_timeout=args.stall_timeout,
-                         realtime=args.realtime)
-    check_rate(source.name, source.sample_rate, model.name, model.sample_rate)
-    log.info("tracking %s (%d channels, %g Hz; microphones from %s) with %s from %s: recipe %s, %g s windows, "
-             "lag %g s", source.name, source.channels, source.sample_rate, source.mic_source, model.name,
+    phase = is_phase_model(args.config, args.ckpt_path, args.weights)
+
+    def source() -> AudioSource:
+        return open_source(args.audio, channels=args.channels, rate=args.rate, sample_format=args.format,
+                           mic_positions=args.mic_positions, t0=args.t0, stall_timeout=args.stall_timeout,
+                           realtime=args.realtime)
+
+    if phase:  # the array first: a phase model is built for it and refuses unknown positions
+        audio = source()
+        model: Any = load_phase_model(args.config, args.ckpt_path, args.weights, source=audio)
+    else:
+        model = load_tracking_model(args.ckpt_path, args.weights, args.recipe, args.window_seconds)
+        audio = source()
+        check_rate(audio.name, audio.sample_rate, model.name, model.sample_rate)
+    log.info("tracking %s (%d channels, %g Hz; microphones from %s) with %s from %s: recipe %s, %g s "
+             "windows, lag %g s", audio.name, audio.channels, audio.sample_rate, audio.mic_source, model.name,
              model.source, model.recipe.name, model.window_seconds, args.lag)
+    csv_writer, mcap_class = (PhaseCsvWriter, PhaseMcapWriter) if phase else (CsvWriter, McapTrackWriter)
     source_path = Path(args.audio) if args.audio != "-" else Path(os.devnull)
     for out in (args.out, args.mcap_out):
         if out is not None:
@@ -95,16 +108,18 @@ def run_track(args: argparse.Namespace) -> int:
     with ExitStack() as stack:
         writers: list[Any] = []
         if args.out is None and args.mcap_out is None or args.stdout:
-            writers.append(CsvWriter(sys.stdout))
+            writers.append(csv_writer(sys.stdout))
         if args.out is not None:
             tmp = stack.enter_context(atomic_write(args.out))
-            writers.append(CsvWriter(stack.enter_context(open(tmp, "w"))))
+            writers.append(csv_writer(stack.enter_context(open(tmp, "w"))))
         mcap_writer = None
         if args.mcap_out is not None:
             tmp = stack.enter_context(atomic_write(args.mcap_out))
-            mcap_writer = McapTrackWriter(stack.enter_context(open(tmp, "wb")), args.topic)
+            mcap_writer = mcap_class(stack.enter_context(open(tmp, "wb")), args.topic)
             writers.append(mcap_writer)
-        report = Tracker(model, source, writers, lag=args.lag, preset=args.preset, batch=args.batch).run()
+        tracker = PhaseTracker if phase else Tracker
+        preset = args.preset if phase or args.preset else "robust"  # a phase model falls back to its config's
+        report = tracker(model, audio, writers, lag=args.lag, preset=preset, batch=args.batch).run()
         if mcap_writer is not None:
             mcap_writer.finish()
     sys.stderr.write(f"aaute track: {report.summary()}\n")
@@ -118,25 +133,32 @@ def add_command(sub: argparse._SubParsersAction) -> None:
         description="Track a drone from microphone audio: a recording (MCAP or any layout aaute reads), a WAV "
                     "file, or raw PCM on stdin ('-'). After each 0.1 s block the window ending there goes through "
                     "the model's mel recipe and net, then the causal (or fixed-lag) robust smoother; each row "
-                    "'timestamp,x,y,z,std_x,std_y,std_z' is written and flushed at once. Statistics (latency, "
+                    "'timestamp,x,y,z,std_x,std_y,std_z' is written and flushed at once. Phase models (--config "
+                    "configs/model/srp_phat.yaml, or phase_student weights) stream the GCC-PHAT recipe, need the "
+                    "microphone positions, and add raw_x,raw_y,raw_z,detection_score,detected,state. Statistics "
+                    "(latency, "
                     "speed against real time, threads) go to stderr at the end.")
     track.add_argument("--audio", required=True, help="'-' (raw PCM on stdin), a .wav file, or a recording")
     model = track.add_mutually_exclusive_group(required=True)
     model.add_argument("--ckpt_path", help="a project checkpoint (.ckpt of aaute fit)")
     model.add_argument("--weights", help="registered weights (aaute weights list) or a weights file")
+    model.add_argument("--config", help="a phase model's config (non-learned: configs/model/srp_phat.yaml); its "
+                                        "net settings, phase recipe, bird's-eye bounds and live_smoother")
     track.add_argument("--recipe", help="mel recipe (default: the checkpoint's data settings, else the net's own)")
     track.add_argument("--window-seconds", type=float, help="audio seconds per window (default: the checkpoint's, "
                                                             "else 2)")
     track.add_argument("--lag", type=float, default=0.0, help="seconds of future each smoothed position may use "
                                                               "(0: causal, the default)")
-    track.add_argument("--preset", choices=["robust"], default="robust", help="robust smoother preset")
+    track.add_argument("--preset", choices=["robust", "srp_phat"],
+                       help="online smoother preset (default: a phase config's live_smoother, else robust)")
     track.add_argument("--realtime", action="store_true", help="recordings: deliver blocks at real-time pace")
     pcm = track.add_argument_group("raw PCM on stdin and WAV files")
     pcm.add_argument("--channels", type=int, help="interleaved channels of the PCM stream")
     pcm.add_argument("--rate", type=float, help="sample rate of the PCM stream (Hz)")
     pcm.add_argument("--format", choices=["s16le", "s32le", "f32le"], default="s16le", help="PCM sample format")
     pcm.add_argument("--mic-positions", type=Path,
-                     help="text file of one 'x y z' row (m) per channel (default: the simulator's array)")
+                     help="text file of one 'x y z' row (m) per channel, also for recordings whose positions are "
+                          "unknown (mel models default to the simulator's array; phase models need real positions)")
     pcm.add_argument("--t0", type=float, default=0.0, help="time of the first sample (s; default 0)")
     pcm.add_argument("--stall-timeout", type=float, default=5.0,
                      help="seconds without data after which the stream counts as ended (default 5)")

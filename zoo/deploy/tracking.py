@@ -81,6 +81,33 @@ def _data_settings(path: Path) -> dict[str, Any]:
     return {**(settings if isinstance(settings, dict) else {}), **(state if isinstance(state, dict) else {})}
 
 
+def load_net(ckpt_path: str | Path | None = None, weights: str | Path | None = None,
+             offline: bool | None = None) -> tuple[nn.Module, str, str, dict[str, Any]]:
+    """The net (eval mode), its model name, where it came from and the data settings stored with it, from a
+    project checkpoint (``ckpt_path``) or named / file weights (``weights``); exactly one of the two.
+
+    Raises:
+        ConfigError: neither or both given.
+    """
+    from zoo.weights import build_net, load_task, resolve_weights
+
+    if (ckpt_path is None) == (weights is None):
+        raise ConfigError("aaute track needs exactly one of --ckpt_path FILE, --weights NAME_OR_PATH and "
+                          "--config FILE")
+    if ckpt_path is not None:
+        path = Path(ckpt_path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such checkpoint")
+        task = load_task(path)
+        return task.net.eval(), str(task.hparams.net), str(path), _data_settings(path)
+    contents, entry = resolve_weights(None, weights, offline)
+    net = build_net(contents, None, None, entry)
+    return net.eval(), net.model_name, str(contents.path), {
+        "inputs": dict(contents.inputs or (entry.inputs if entry else {})),
+        "audio_sample_rates": contents.metadata.get("audio_sample_rates")  # a checkpoint's DataModule
+        or contents.metadata.get("provenance", {}).get("audio_sample_rates")}  # an exported file's
+
+
 def load_tracking_model(ckpt_path: str | Path | None = None, weights: str | Path | None = None,
                         recipe: str | None = None, window_seconds: float | None = None,
                         offline: bool | None = None) -> TrackingModel:
@@ -91,32 +118,15 @@ def load_tracking_model(ckpt_path: str | Path | None = None, weights: str | Path
 
     Raises:
         TrackingError: neither or both sources given, or a model whose inputs are not one mel map (phase
-            and image recipes are not streamed), naming the model and the recipes supported.
+            models stream through :mod:`zoo.deploy.live_phase`; image recipes are not streamed), naming the
+            model and the recipes supported.
     """
-    from zoo.weights import build_net, load_task, resolve_weights
-
-    if (ckpt_path is None) == (weights is None):
-        raise ConfigError("aaute track needs exactly one of --ckpt_path FILE and --weights NAME_OR_PATH")
-    data: dict[str, Any] = {}
-    if ckpt_path is not None:
-        path = Path(ckpt_path)
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such checkpoint")
-        task = load_task(path)
-        net, name, source = task.net, str(task.hparams.net), str(path)
-        data = _data_settings(path)
-    else:
-        contents, entry = resolve_weights(None, weights, offline)
-        net = build_net(contents, None, None, entry)
-        name, source = net.model_name, str(contents.path)
-        data = {"inputs": dict(contents.inputs or (entry.inputs if entry else {})),
-                "audio_sample_rates": contents.metadata.get("audio_sample_rates")  # a checkpoint's DataModule
-                or contents.metadata.get("provenance", {}).get("audio_sample_rates")}  # an exported file's
+    net, name, source, data = load_net(ckpt_path, weights, offline)
     inputs = dict(getattr(net, "inputs", {}))
     supported = ", ".join(sorted(MEL_RECIPES))
     if set(inputs) != {"audio_mel"}:
         raise TrackingError(f"model {name!r} reads {inputs}; aaute track streams models of one mel input "
-                            f"(audio_mel recipes {supported}), not phase or image recipes")
+                            f"(audio_mel recipes {supported}) or of one phase input, not image recipes")
     chosen = recipe or (data.get("inputs") or {}).get("audio_mel") or inputs["audio_mel"]
     try:
         mel = mel_recipe(chosen)
@@ -134,7 +144,7 @@ def load_tracking_model(ckpt_path: str | Path | None = None, weights: str | Path
     rates = data.get("audio_sample_rates") or []
     read_at = (data.get("reader_options") or {}).get("sample_rate")
     rate = rates[0] if len(rates) == 1 else read_at or mel.mel_sample_rate
-    return TrackingModel(net.eval(), name, mel, seconds, source, float(rate) if rate else None)
+    return TrackingModel(net, name, mel, seconds, source, float(rate) if rate else None)
 
 
 # ============================================================================================ writers
@@ -261,9 +271,17 @@ class Tracker:
             raise ConfigError(f"--batch must be at least 1, got {batch}")
         self.batch = int(batch)
         self.window = int(round(model.window_seconds * source.sample_rate))
-        self.front = IncrementalMel(model.recipe, source.sample_rate, source.channels, self.window)
+        self.front = self.front_end()
         self.smoother = OnlineSmoother(preset, lag=lag)
         self.bad_until = -1  #: windows ending at or before this absolute sample contain a non-finite block
+
+    def front_end(self) -> Any:
+        """The streaming front end (``push``, ``features``, ``end``, ``computed``, ``used``): the mel recipe's."""
+        return IncrementalMel(self.model.recipe, self.source.sample_rate, self.source.channels, self.window)
+
+    def _finish_rows(self) -> list[Any]:
+        """The rows still held back when the stream ends (the smoother's, with the future seen so far)."""
+        return self.smoother.flush()
 
     def _timestamp(self, stop: int) -> float:
         return self.source.t0 + stop / self.source.sample_rate
@@ -337,7 +355,7 @@ class Tracker:
             _silence_stdout()
         if report.ended != "the output being closed":
             try:
-                self._emit(self.smoother.flush(), report)
+                self._emit(self._finish_rows(), report)
             except BrokenPipeError:
                 report.ended = "the output being closed"
                 _silence_stdout()

@@ -124,6 +124,14 @@ ROBUST_PRESETS: dict[str, RobustHyperparameters] = {
         lengthscale=(5.23, 7.51, 16.2), outputscale=(2.54, 23.6, 27.7), noise=(0.00535, 0.0354, 0.0474), dof=1.24,
         std_scale=((0.0, 2.71), (0.5, 3.41), (1.0, 3.70), (OFFLINE, 3.76)),
     ),
+    # srp_phat's live detections (metre-scale errors, mostly systematic: the detections agree closely with
+    # each other, so the fitted noise is small and the calibration factors large): fitted on development
+    # flights only (seed 202, 5 x 60 s in default and in quiet ambient) by
+    # `python -m benchmarks.studies.live_phase_calibration --data DEFAULT_DIR QUIET_DIR`
+    "srp_phat": RobustHyperparameters(
+        lengthscale=(6.02, 6.33, 5.41), outputscale=(4.19, 25.8, 13.4), noise=(0.000547, 0.00263, 0.00301),
+        dof=0.770, std_scale=((0.0, 19.9), (0.5, 29.9), (1.0, 31.4), (OFFLINE, 34.9)),
+    ),
 }
 
 

@@ -16,6 +16,8 @@ import torch
 
 #: what an undetected window returns once the hold has expired
 FALLBACKS = ("mean", "centre")
+#: what each window of the last :meth:`DetectionGate.apply` returned: a counted detection, a held one, a fallback
+STATES = ("detected", "held", "fallback")
 
 
 @dataclass
@@ -47,6 +49,7 @@ class DetectionGate:
             raise ValueError(f"srp_phat fallback must be one of {FALLBACKS}, got {fallback!r}")
         self.fallback = fallback
         self.sequences: dict[int, SequenceMemory] = {}  #: sequence index -> its memory
+        self.states: list[str] = []  #: per window of the last :meth:`apply`, one of :data:`STATES`
 
     def apply(self, positions: torch.Tensor, detected: torch.Tensor, sequence: torch.Tensor | None,
               time: torch.Tensor | None, centre: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -55,8 +58,10 @@ class DetectionGate:
         time order; a sequence whose time goes back starts afresh. Without ``sequence`` and ``time`` every
         window stands alone: undetected ones take ``centre`` (3)."""
         if sequence is None or time is None:
+            self.states = ["detected" if hit else "fallback" for hit in detected.tolist()]
             return torch.where(detected[:, None], positions, centre), detected
         out, detected = positions.clone(), detected.clone()
+        self.states = []
         for i, (seq, t) in enumerate(zip(sequence.tolist(), time.tolist(), strict=True)):
             memory = self.sequences.get(seq)
             if memory is None or t < memory.time:  # a new sequence, or the same one again from its start
@@ -70,10 +75,14 @@ class DetectionGate:
             if bool(detected[i]):
                 memory.last, memory.last_time = positions[i], t
                 memory.total, memory.count = memory.total + positions[i], memory.count + 1
-            elif memory.last is not None and t - memory.last_time <= self.hold_seconds:
+                self.states.append("detected")
+                continue
+            held = memory.last is not None and t - memory.last_time <= self.hold_seconds
+            if held:
                 out[i] = memory.last
             elif memory.count and self.fallback == "mean":
                 out[i] = memory.total / memory.count
             else:
                 out[i] = centre
+            self.states.append("held" if held else "fallback")
         return out, detected

@@ -11,15 +11,17 @@ from __future__ import annotations
 
 import torch
 
-from datamodules.features import pair_indices
-from zoo.nets.phase.steering import Steering, cube_grid, gather, pooled
+from datamodules.features import mic_pairs, pair_indices
+from zoo.nets.phase.steering import POOL_WIDTHS, Steering, cube_grid, gather, pooled, sparse_warnings_ignored
 
 #: coarse cells are split until they span at most this many lags (half-range) for every pair
 MAX_COARSE_WIDTH = 32.0
 #: levels refined on a window's mean correlation before its rays are scanned over range
 WINDOW_LEVELS = 2
-#: the delay fit: lags searched around a candidate's delays, Gauss-Newton steps, damping, largest step (m)
+#: the delay fit: lags searched around a candidate's delays, Gauss-Newton steps at most, damping, largest step (m)
 FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 30, 1e-4, 5.0
+#: the delay fit stops once no point moves farther than this in a step (m: 1/60 of the finest grid step)
+FIT_TOLERANCE = 1e-3
 
 
 def best_candidates(points: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -52,11 +54,13 @@ class CandidateSearch:
         self.refine_levels = int(refine_levels)
         self.uses_delay_fit = bool(fit_delays)
         self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        self._coarse_matrices: dict[bytes, torch.Tensor] = {}
 
     def set_region(self, region: torch.Tensor) -> None:
         """Search ``region`` (3 x 2) from now on; the coarse grids are rebuilt."""
         self.region = region
         self._coarse.clear()
+        self._coarse_matrices.clear()
 
     def clamp(self, points: torch.Tensor) -> torch.Tensor:
         """Points (... x 3) moved to the nearest point of the region."""
@@ -86,6 +90,24 @@ class CandidateSearch:
             grid, side = torch.cat(done), torch.cat(sides)
             self._coarse[key] = (grid, side, self.steering.columns(grid, mics, side[:, None]))
         return self._coarse[key]
+
+    def coarse_matrix(self, mics: torch.Tensor) -> torch.Tensor:
+        """The sparse (CSR) matrix whose row g reads coarse cell g's pooled multipath response from the
+        flattened pooled correlations (what :func:`~zoo.nets.phase.steering.gather` computes at the cells'
+        columns), built once per geometry: one sparse product scores every cell far faster than gathering."""
+        key = mics.numpy().tobytes()
+        if key not in self._coarse_matrices:
+            grid, _, columns = self.coarse_grid(mics)
+            weights = self.steering.terms(mics.shape[0]).weights
+            values = (weights / weights.sum())[None, :].expand_as(columns)
+            rows = torch.arange(grid.shape[0])[:, None].expand_as(columns)
+            used = columns >= 0  # -1 reads the zero column: nothing
+            pairs = len(mic_pairs(mics.shape[0]))
+            size = (grid.shape[0], len(POOL_WIDTHS) * pairs * self.steering.recipe.num_lags() + 1)
+            with sparse_warnings_ignored():
+                matrix = torch.sparse_coo_tensor(torch.stack([rows[used], columns[used]]), values[used].float(), size)
+                self._coarse_matrices[key] = matrix.coalesce().to_sparse_csr()
+        return self._coarse_matrices[key]
 
     def refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor,
                keep: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -143,18 +165,25 @@ class CandidateSearch:
         weight = y1.clamp_min(0.0) + 1e-3
         first, second = pair_indices(mics.shape[0])
         scale = self.steering.recipe.lag_rate / self.steering.speed_of_sound
+        half = (self.steering.recipe.num_lags() - 1) // 2
         m = mics.to(points.dtype)
         for _ in range(FIT_STEPS):
             direction = points[..., None, :] - m  # N x K x C x 3
-            unit = direction / torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-6)
+            distance = torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-6)
+            unit = direction / distance
             jacobian = (unit[..., first, :] - unit[..., second, :]) * scale  # N x K x P x 3
-            residual = self.steering.pair_geometry(points, mics, direct_only=True)[0] - measured  # N x K x P
+            # the direct terms' lag columns (pair_geometry's, from the distances already at hand)
+            residual = (distance[..., first, 0] - distance[..., second, 0]) * scale + half - measured  # N x K x P
             jw = jacobian * weight[..., None]
             normal = jw.transpose(-1, -2) @ jacobian
             damping = FIT_DAMPING * normal.diagonal(dim1=-2, dim2=-1).mean(dim=-1)[..., None, None]
             normal = normal + damping * torch.eye(3)
             step = torch.linalg.solve(normal, -(jw.transpose(-1, -2) @ residual[..., None]))[..., 0]
-            points = self.clamp(points + step.clamp(-FIT_MAX_STEP, FIT_MAX_STEP))
+            moved = self.clamp(points + step.clamp(-FIT_MAX_STEP, FIT_MAX_STEP))
+            converged = float((moved - points).abs().max()) < FIT_TOLERANCE
+            points = moved
+            if converged:
+                break
         return points
 
     def fitted_candidates(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -170,10 +199,12 @@ class CandidateSearch:
         corr = correlation.to(torch.float32)
         groups = torch.tensor_split(torch.arange(f), min(self.search_groups, f))
         mean = torch.stack([corr[:, rows].mean(dim=1) for rows in groups], dim=1).reshape(-1, p, lags)
-        grid, sides, columns = self.coarse_grid(mics)
+        grid, sides, _ = self.coarse_grid(mics)
         k = min(self.candidates, grid.shape[0])
         flat = pooled(mean)
-        best = gather(flat, columns, self.steering.terms(mics.shape[0]).weights).topk(k, dim=1)  # B x G -> B x k
+        with sparse_warnings_ignored():
+            scores = (self.coarse_matrix(mics) @ flat.T).T  # B x G: every cell's pooled response at once
+        best = scores.topk(k, dim=1)  # B x G -> B x k
         points, steps = grid[best.indices], sides[best.indices]
         for _ in range(WINDOW_LEVELS):
             points, steps, _ = self.refine(flat, points, steps, mics, k)

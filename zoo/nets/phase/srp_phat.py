@@ -38,6 +38,7 @@ no trainable parameters, so ``aaute fit`` returns at once and ``aaute test`` eva
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from collections.abc import Sequence
 
@@ -55,6 +56,8 @@ log = logging.getLogger(__name__)
 
 #: null windows searched at once while setting a threshold
 NULL_BATCH = 64
+#: bumped whenever the search changes what it finds, so stored thresholds of older code are not reused
+THRESHOLD_VERSION = 2
 
 
 @register_model("srp_phat")
@@ -178,6 +181,25 @@ class SRPPhat(TrajectoryNet):
             log.info("srp_phat: detection threshold %.4f (null quantile %.3f of the best frame of %d white-noise "
                      "windows)", value, 1.0 - self.false_alarm, windows)
         return self._thresholds[key]
+
+    def threshold_key(self, mics: torch.Tensor) -> str:
+        """A digest of everything a geometry's threshold depends on (recipe, physics, search settings, null
+        statistic, geometry, :data:`THRESHOLD_VERSION`), so a stored threshold is reused only where it holds."""
+        search = self.search
+        settings = (THRESHOLD_VERSION, self.recipe.key(), self.steering.speed_of_sound, self.steering.ground_height,
+                    self.steering.reflection_weight, self.steering.min_range, self.region.tolist(), search.coarse_step,
+                    search.fine_step, search.candidates, search.frame_candidates, search.search_groups,
+                    search.refine_levels, search.uses_delay_fit, self.false_alarm, self.null_windows,
+                    mics.double().numpy().tobytes().hex())
+        return hashlib.sha256(repr(settings).encode()).hexdigest()[:24]
+
+    def known_threshold(self, mics: torch.Tensor) -> float | None:
+        """The geometry's threshold if it has been computed or set (:meth:`set_threshold`), else None."""
+        return self._thresholds.get(mics.numpy().tobytes())
+
+    def set_threshold(self, mics: torch.Tensor, value: float) -> None:
+        """Use ``value`` as the geometry's threshold (one stored under its :meth:`threshold_key`)."""
+        self._thresholds[mics.numpy().tobytes()] = float(value)
 
     def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
         """Compute the coarse grid and detection threshold of the inputs' geometry (otherwise the first call does)."""

@@ -43,7 +43,7 @@ class SteeringTerms(NamedTuple):
 
 
 @contextmanager
-def _sparse_warnings_ignored() -> Iterator[None]:
+def sparse_warnings_ignored() -> Iterator[None]:
     """Silence torch's beta-support warnings for sparse tensors."""
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*[Ss]parse.*")
@@ -140,6 +140,7 @@ class Steering:
         self.ground_height = None if ground_height is None else float(ground_height)
         self.reflection_weight = float(reflection_weight)
         self.min_range = float(min_range)
+        self._terms: dict[int, SteeringTerms] = {}  #: channel count -> its terms
         self._matrix_key: tuple | None = None  #: geometry, grid and step of the cached steering matrix
         self._matrix: torch.Tensor | None = None
 
@@ -151,15 +152,18 @@ class Steering:
         ``(i, j)`` reads: direct-direct ``(i, j)``, then with a ground plane image-direct ``(i', j)``,
         direct-image ``(i, j')`` and image-image ``(i', j')``, all on the pair's own correlation row.
         """
-        first, second = pair_indices(channels)
-        rows = torch.arange(len(first))
-        if self.ground_height is None:
-            return SteeringTerms(first, second, rows, torch.ones(len(first)))
-        image = channels
-        firsts = torch.cat([first, first + image, first, first + image])
-        seconds = torch.cat([second, second, second + image, second + image])
-        weights = torch.cat([torch.ones(len(first)), torch.full((3 * len(first),), self.reflection_weight)])
-        return SteeringTerms(firsts, seconds, rows.repeat(4), weights)
+        if channels not in self._terms:  # built once per channel count: the search asks thousands of times
+            first, second = pair_indices(channels)
+            rows = torch.arange(len(first))
+            if self.ground_height is None:
+                self._terms[channels] = SteeringTerms(first, second, rows, torch.ones(len(first)))
+            else:
+                image = channels
+                firsts = torch.cat([first, first + image, first, first + image])
+                seconds = torch.cat([second, second, second + image, second + image])
+                weights = torch.cat([torch.ones(len(first)), torch.full((3 * len(first),), self.reflection_weight)])
+                self._terms[channels] = SteeringTerms(firsts, seconds, rows.repeat(4), weights)
+        return self._terms[channels]
 
     def virtual_mics(self, mics: torch.Tensor) -> torch.Tensor:
         """The microphones, then (with a ground plane) their mirror images in it."""
@@ -266,7 +270,7 @@ class Steering:
         if self._matrix_key != key:
             self._matrix_key, self._matrix = key, self.steering_matrix(points, mics, step)
         flat = pooled(correlation.to(torch.float32))
-        with _sparse_warnings_ignored():
+        with sparse_warnings_ignored():
             values = (self._matrix @ flat.T).T  # N x 2G
         return values.reshape(-1, 2, points.shape[0])
 
@@ -283,5 +287,5 @@ class Steering:
         used = (torch.cat([columns, columns]) >= 0) & (values > 0)
         size = (2 * count, len(POOL_WIDTHS) * pairs * self.recipe.num_lags() + 1)
         indices = torch.stack([rows[used], torch.cat([columns, columns])[used]])
-        with _sparse_warnings_ignored():
+        with sparse_warnings_ignored():
             return torch.sparse_coo_tensor(indices, values[used], size).coalesce().to_sparse_csr()

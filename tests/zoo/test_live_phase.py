@@ -1,0 +1,282 @@
+"""aaute track with the phase localisers: equality with offline predict, the gate in stream order, geometry."""
+
+from __future__ import annotations
+
+import io
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from datamodules.features import PhaseWindows
+from datamodules.formats import open_recording
+from datamodules.streams import PcmSource, RecordingSource
+from zoo.deploy.live_phase import GatedSmoothing, PhaseRow, PhaseTracker, check_geometry, load_phase_model
+from zoo.deploy.tracking import TrackingError
+from zoo.smoothing import ROBUST_PRESETS, OnlineSmoother
+
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "srp_phat.yaml"
+NULL_WINDOWS = 40  #: fewer null windows than the config's 300: the same on both sides, a faster test
+
+
+class Rows:
+    def __init__(self):
+        self.rows = []
+
+    def write(self, row) -> None:
+        self.rows.append(row)
+
+
+@pytest.fixture(scope="module")
+def quiet_recording(tmp_path_factory) -> Path:
+    """One 6 s flight in quiet ambient (no wind, no HVAC), so srp_phat detects it in some windows."""
+    from datamodules.simulate.acoustics import AudioConfig
+    from datamodules.simulate.ambient import AmbientConfig
+    from datamodules.simulate.simulator import SimulationConfig, simulate_dataset
+
+    out = tmp_path_factory.mktemp("quiet")
+    ambient = AmbientConfig(level_dba=(45.0, 45.0), wind_speed=(0.0, 0.0), hvac=False)
+    config = SimulationConfig(duration=6.0, camera=False, audio=AudioConfig(ambient=ambient))
+    return simulate_dataset(out, 1, config, seed=3, progress=False)[0]
+
+
+def _live(path: Path, **options) -> tuple[list[PhaseRow], PhaseTracker]:
+    source = RecordingSource(path)
+    model = load_phase_model(config=CONFIG, source=source)
+    model.net.null_windows = NULL_WINDOWS
+    rows = Rows()
+    tracker = PhaseTracker(model, source, [rows], **options)
+    tracker.run()
+    return rows.rows, tracker
+
+
+@pytest.fixture(scope="module")
+def live_rows(quiet_recording):
+    torch.set_num_threads(1)
+    return _live(quiet_recording)[0]
+
+
+@pytest.fixture(scope="module")
+def offline(quiet_recording, tmp_path_factory):
+    """``TrajectoryTask.predict_step`` of the same config over the DataModule's predict windows, with float32
+    features of the offline recipe (:class:`PhaseWindows`) in place of the float16 cache's."""
+    from datamodules.mmaud import MMAUDDataModule
+    from zoo.task import TrajectoryTask
+
+    config = yaml.safe_load(CONFIG.read_text())
+    kwargs = dict(config["model"]["init_args"]["net_kwargs"], null_windows=NULL_WINDOWS)
+    recipe_name = config["data"]["init_args"]["inputs"]["audio_phase"]
+    task = TrajectoryTask(net="srp_phat", net_kwargs=kwargs)
+    data = MMAUDDataModule(root=str(quiet_recording), split={"test": [quiet_recording.stem]},
+                           inputs={"audio_phase": recipe_name}, test_lights=["ideal"],
+                           cache_dir=str(tmp_path_factory.mktemp("cache")))
+    data.setup("predict")
+    task.net.set_bounds(data.bev_bounds)
+    batches = list(data.predict_dataloader()[0])
+    times = np.concatenate([b["time"].numpy() for b in batches])
+    assert np.all(np.diff(times) > 0), "the predict loader gives one sequence's windows in time order"
+    audio = open_recording(quiet_recording).audio
+    windows = PhaseWindows(audio, task.net.recipe, times)
+    out, index = {"time": [], "position": [], "state": []}, 0
+    task.on_predict_epoch_start()
+    with torch.no_grad():
+        for i, batch in enumerate(batches):
+            n = len(batch["time"])
+            batch["audio_phase"] = torch.stack([torch.from_numpy(windows(index + k)) for k in range(n)])
+            index += n
+            result = task.predict_step(batch, i)
+            out["time"].append(result["time"].numpy())
+            out["position"].append(result["position"].double().numpy())
+            out["state"] += task.net.gate.states  # the gate's verdict on each window of this batch
+    result = {key: np.concatenate(value) if key != "state" else np.array(value) for key, value in out.items()}
+    result["detected"] = result["state"] == "detected"
+    return result
+
+
+def test_live_rows_equal_offline_predictions_of_the_same_config(live_rows, offline):
+    t = np.array([r.timestamp for r in live_rows])
+    index = np.searchsorted(t, offline["time"] - 1e-6)
+    assert np.all(np.abs(t[index] - offline["time"]) < 1e-6), "every label time has a live row"
+    live = [live_rows[i] for i in index]
+    states = np.array([r.state for r in live])
+    assert "detected" in states, "the quiet flight is detected in some windows"
+    assert list(states) == list(offline["state"])
+    assert np.array_equal([r.detected for r in live], offline["detected"])
+    raw = np.array([r.raw for r in live])
+    np.testing.assert_allclose(raw, offline["position"], atol=1e-4)  # float32 search, the same features
+
+
+def test_rows_say_what_each_position_is(live_rows):
+    for row in live_rows:
+        assert row.state in ("detected", "held", "fallback")
+        assert row.detected == (row.state == "detected")
+        if row.state == "detected":
+            assert np.isfinite(row.std).all() and row.score > 1.0
+        if row.state == "fallback":
+            assert np.isnan(row.std).all() and np.array_equal(row.mean, row.raw)
+    t = np.array([r.timestamp for r in live_rows])
+    assert np.all(np.diff(t) > 0)
+
+
+def test_gated_smoothing_feeds_measurements_only_and_keeps_time_order():
+    """A fixed-lag smoother: a held row waits for the detection before it, and is written after it."""
+    gated = GatedSmoothing(OnlineSmoother("robust", lag=0.3))
+    out = []
+    steps = [(0.1, "fallback"), (0.2, "detected"), (0.3, "detected"), (0.4, "held"), (0.5, "held"),
+             (0.6, "held"), (0.7, "held"), (0.8, "detected")]
+    for t, state in steps:
+        out += gated.add(PhaseRow(t, np.array([t, 0.0, 5.0]), 2.0, state == "detected", state))
+        assert [r.timestamp for r in out] == sorted(r.timestamp for r in out)
+    assert [r.timestamp for r in out][:2] == [0.1, 0.2]
+    out += gated.flush()
+    assert [r.timestamp for r in out] == [t for t, _ in steps]
+    held = [r for r in out if r.state == "held"]
+    assert all(np.allclose(r.mean, out[2].mean) for r in held)  # the latest smoothed detection, 0.3 s
+    stds = [r.std for r in held]  # growing with the time since that detection
+    assert all(np.all(later > earlier) for earlier, later in zip(stds, stds[1:], strict=False))
+    assert np.all(stds[0] > out[2].std)
+
+
+def test_a_phase_model_refuses_a_source_without_positions(quiet_recording):
+    audio = open_recording(quiet_recording).audio
+    pcm = (audio.read(0, 48000).T * 32767).astype("<i2").tobytes()
+    source = PcmSource(io.BytesIO(pcm), 4, 48000.0, "s16le")  # no --mic-positions: the default array stands in
+    with pytest.raises(TrackingError, match="pass --mic-positions FILE"):
+        load_phase_model(config=CONFIG, source=source)
+
+
+def test_positions_file_serves_pcm_and_a_wrong_rate_is_refused(quiet_recording, tmp_path, caplog):
+    audio = open_recording(quiet_recording).audio
+    mics = tmp_path / "mics.txt"
+    np.savetxt(mics, audio.mic_positions)
+    pcm = (audio.read(0, 16000).T * 32767).astype("<i2").tobytes()
+    source = PcmSource(io.BytesIO(pcm), 4, 16000.0, "s16le", mic_positions=mics)
+    model = load_phase_model(config=CONFIG, source=source)
+    with pytest.raises(TrackingError, match="16000 Hz.*at least 16000|needs at least"):
+        check_geometry(model, PcmSource(io.BytesIO(pcm), 4, 12000.0, "s16le", mic_positions=mics))
+    small = tmp_path / "small.txt"
+    np.savetxt(small, audio.mic_positions * 0.02)  # a 9 cm array
+    with caplog.at_level(logging.WARNING):
+        check_geometry(model, PcmSource(io.BytesIO(pcm), 4, 48000.0, "s16le", mic_positions=small))
+    assert "cannot resolve range" in caplog.text
+
+
+def test_any_channel_count_from_a_config(quiet_recording, tmp_path):
+    """srp_phat steers the array it is given: three of the four microphones track too."""
+    audio = open_recording(quiet_recording).audio
+    mics = tmp_path / "mics3.txt"
+    np.savetxt(mics, audio.mic_positions[:3])
+    samples = audio.read(0, int(2.5 * 48000))[:3]
+    source = PcmSource(io.BytesIO((samples.T * 32767).astype("<i2").tobytes()), 3, 48000.0, "s16le",
+                       mic_positions=mics)
+    model = load_phase_model(config=CONFIG, source=source)
+    model.net.null_windows = 20
+    rows = Rows()
+    PhaseTracker(model, source, [rows]).run()
+    assert len(rows.rows) == 6 and all(np.isfinite(r.raw).all() for r in rows.rows)
+
+
+def _small_config(tmp_path: Path) -> Path:
+    config = yaml.safe_load(CONFIG.read_text())
+    config["model"]["init_args"]["net_kwargs"]["null_windows"] = 20
+    path = tmp_path / "srp_phat_small.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_a_nan_block_skips_exactly_the_windows_that_contain_it(quiet_recording, tmp_path, caplog):
+    audio = open_recording(quiet_recording).audio
+    mics = tmp_path / "mics.txt"
+    np.savetxt(mics, audio.mic_positions)
+    samples = audio.read(0, int(3.0 * 48000)).copy()
+    samples[:, 24000:28800] = np.nan  # the block 0.5-0.6 s
+    source = PcmSource(io.BytesIO(samples.T.astype("<f4").tobytes()), 4, 48000.0, "f32le", mic_positions=mics)
+    model = load_phase_model(config=_small_config(tmp_path), source=source)
+    rows = Rows()
+    tracker = PhaseTracker(model, source, [rows])
+    assert tracker.smoother.hyperparameters == ROBUST_PRESETS["srp_phat"]  # the config's live_smoother
+    with caplog.at_level(logging.WARNING):
+        report = tracker.run()
+    window = 23 * 4096
+    stops = np.arange(4800, samples.shape[1] + 1, 4800)
+    stops = stops[stops >= window]
+    spoiled = (stops - window < 28800) & (stops > 24000)
+    assert report.skipped_windows == int(spoiled.sum()) > 0
+    assert [round(r.timestamp, 3) for r in rows.rows] == [round(s / 48000, 3) for s in stops[~spoiled]]
+    assert all(np.isfinite(r.raw).all() for r in rows.rows)
+
+
+def test_track_cli_with_a_config_and_a_positions_file(quiet_recording, tmp_path, capsys):
+    from scipy.io import wavfile
+
+    from zoo.cli import main
+
+    audio = open_recording(quiet_recording).audio
+    wav, mics, wrong = tmp_path / "flight.wav", tmp_path / "mics.txt", tmp_path / "mics3.txt"
+    wavfile.write(wav, 48000, audio.read(0, int(2.5 * 48000)).T.copy())
+    np.savetxt(mics, audio.mic_positions)
+    np.savetxt(wrong, audio.mic_positions[:3])
+    config = _small_config(tmp_path)
+    assert main(["track", "--config", str(config), "--audio", str(wav), "--mic-positions", str(mics)]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert out[0] == "timestamp,x,y,z,std_x,std_y,std_z,raw_x,raw_y,raw_z,detection_score,detected,state"
+    assert len(out) == 1 + 6 and out[1].split(",")[-1] in ("detected", "held", "fallback")
+    for args, message in (([], "pass --mic-positions FILE"), (["--mic-positions", str(wrong)], "expected 4 rows")):
+        assert main(["track", "--config", str(config), "--audio", str(wav), *args]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0]
+
+
+def test_the_threshold_is_computed_once_per_geometry_and_settings(quiet_recording, tmp_path):
+    from zoo.deploy.live_phase import prepare_threshold
+
+    source = RecordingSource(quiet_recording)
+    mics = torch.from_numpy(source.mic_positions.astype(np.float32)).double()
+    path = tmp_path / "thresholds.json"
+    first = load_phase_model(config=CONFIG, source=source).net
+    first.null_windows = 10
+    prepare_threshold(first, mics, path)
+    value = first.known_threshold(mics)
+    second = load_phase_model(config=CONFIG, source=source).net
+    second.null_windows = 10
+    second.threshold = None  # a second computation would fail: the stored value must serve
+    prepare_threshold(second, mics, path)
+    assert second.known_threshold(mics) == value
+    third = load_phase_model(config=CONFIG, source=source).net
+    third.null_windows, third.false_alarm = 10, 0.2  # other settings: computed afresh, stored beside
+    prepare_threshold(third, mics, path)
+    assert third.known_threshold(mics) != value and len(yaml.safe_load(path.read_text())) == 2
+
+
+def test_phase_student_weights_stream_with_estimate_rows(quiet_recording, tmp_path):
+    from zoo.deploy.live_phase import is_phase_model
+    from zoo.registry import get_model
+    from zoo.weights import save_weights_file
+
+    torch.manual_seed(0)
+    weights = save_weights_file(get_model("phase_student", channels=4), tmp_path / "phase_student.pt",
+                                net_kwargs={"channels": 4})
+    assert is_phase_model(None, None, weights)
+    source = RecordingSource(quiet_recording)
+    model = load_phase_model(weights=weights, source=source)
+    rows = Rows()
+    PhaseTracker(model, source, [rows]).run()
+    assert len(rows.rows) > 10 and {r.state for r in rows.rows} == {"estimate"}
+    assert all(np.isfinite(r.std).all() for r in rows.rows)
+
+
+def test_an_unknown_live_smoother_preset_is_refused(tmp_path):
+    from datamodules.errors import ConfigError
+
+    config = yaml.safe_load(CONFIG.read_text())
+    config["model"]["init_args"]["live_smoother"] = {"preset": "no_such_preset"}
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(config))
+    mics = tmp_path / "mics.txt"
+    np.savetxt(mics, np.array([[1.5, 1.5, 0.2], [-1.5, 1.5, 0.7], [-1.5, -1.5, 1.2], [1.5, -1.5, 1.7]]))
+    source = PcmSource(io.BytesIO(b""), 4, 48000.0, "s16le", mic_positions=mics)
+    with pytest.raises(ConfigError, match="live_smoother preset 'no_such_preset'"):
+        load_phase_model(config=path, source=source)

@@ -1,0 +1,429 @@
+"""The phase localisers live: ``srp_phat`` and ``phase_student`` behind ``aaute track``.
+
+:func:`load_phase_model` builds the net from a config (``configs/model/srp_phat.yaml``: the net's settings,
+the data's phase recipe and bird's-eye bounds, the optional ``live_smoother``), a project checkpoint or
+weights. :class:`PhaseTracker` is the :class:`~zoo.deploy.tracking.Tracker` with the streaming phase front
+end (:class:`~datamodules.features.IncrementalPhase`) in place of the mel one: after each 0.1 s block the
+window ending there goes to the net with the stream's microphone positions, its time and one sequence
+index, so ``srp_phat``'s gate (confirmation, hold, fallback) runs in stream order exactly as it does over
+the time-ordered windows of ``aaute predict``. Nothing reads audio after the row's time; the smoother's
+``lag`` is the only look-ahead.
+
+Rows (:data:`PHASE_COLUMNS`): ``x, y, z, std_x, std_y, std_z`` the online robust smoother's position and
+std; ``raw_x, raw_y, raw_z`` the localiser's output (what ``aaute predict`` gives); ``detection_score``
+(peak response over the detection threshold) and ``detected``; ``state``: ``detected`` (a counted
+detection), ``held`` (the last detection, within ``hold_seconds``), ``fallback`` (after the hold, or
+before the first detection) or ``estimate`` (``phase_student``, which always answers). Only measurements
+(``detected`` and ``estimate``) feed the smoother: a held row repeats the latest smoothed position and std,
+a fallback row carries the localiser's fallback position with std NaN (no measurement supports it).
+
+Geometry is never guessed: the source's positions must be known (the recording's, or ``--mic-positions``);
+their count must equal the channels (:class:`PhaseTracker` refuses otherwise); a sample rate below twice
+the recipe's highest frequency is refused; an aperture too small for the region is warned about
+(:func:`check_geometry`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import torch
+import yaml
+from torch import nn
+
+from datamodules.errors import ConfigError
+from datamodules.features import IncrementalPhase, PhaseRecipe
+from datamodules.streams import AudioSource
+from zoo.deploy.tracking import (
+    HOP_SECONDS,
+    McapTrackWriter,
+    Tracker,
+    TrackingError,
+    TrackingReport,
+    load_net,
+)
+from zoo.smoothing import ROBUST_PRESETS, OnlineRow, OnlineSmoother
+
+log = logging.getLogger(__name__)
+
+PHASE_COLUMNS = ("timestamp", "x", "y", "z", "std_x", "std_y", "std_z", "raw_x", "raw_y", "raw_z",
+                 "detection_score", "detected", "state")
+#: the nets streamed here
+PHASE_NETS = ("srp_phat", "phase_student")
+#: path difference (m) the wavefront's curvature must reach across the array at the region's far edge for its
+#: range to be resolved: one lag of the recipe is 14.5 mm of path at 24 kHz
+MIN_CURVATURE_LAGS = 1.0
+
+
+# ============================================================================================ model
+
+
+@dataclass
+class PhaseTrackingModel:
+    """A phase net ready for streaming: the net, its name, phase recipe, window, origin and live smoother."""
+
+    net: nn.Module
+    name: str
+    recipe: PhaseRecipe
+    window_seconds: float
+    source: str
+    live_smoother: dict[str, Any] = field(default_factory=dict)
+
+
+def _from_config(path: Path, mics: np.ndarray | None) -> tuple[nn.Module, str, dict[str, Any], dict[str, Any]]:
+    """The net a LightningCLI config describes (``model.init_args.net``, ``net_kwargs``; with ``mics``, for
+    that array: its channel count and positions), the data's init args and the model's ``live_smoother``."""
+    from zoo.registry import get_model
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such config")
+    try:
+        config = yaml.safe_load(path.read_text()) or {}
+        model = (config.get("model") or {}).get("init_args") or {}
+        data = (config.get("data") or {}).get("init_args") or {}
+    except (yaml.YAMLError, AttributeError) as error:
+        raise ConfigError(f"{path}: expected a model config (model.init_args.net ...): {error}") from None
+    name = model.get("net")
+    if name not in PHASE_NETS:
+        raise ConfigError(f"{path}: aaute track --config streams {', '.join(PHASE_NETS)}; this config's net is "
+                          f"{name!r} (give a trained mel model by --weights or --ckpt_path)")
+    kwargs = dict(model.get("net_kwargs") or {})
+    if mics is not None:  # a non-learned net steers any array: the stream's
+        kwargs.update(in_channels=int(mics.shape[0]), mic_positions=np.asarray(mics, dtype=float).tolist())
+    net = get_model(name, **kwargs)
+    if any(p.requires_grad for p in net.parameters()):
+        raise ConfigError(f"{path}: {name!r} learns its weights; give them with --weights or --ckpt_path")
+    return net.eval(), name, data, dict(model.get("live_smoother") or {})
+
+
+def load_phase_model(config: str | Path | None = None, ckpt_path: str | Path | None = None,
+                     weights: str | Path | None = None, offline: bool | None = None,
+                     source: AudioSource | None = None) -> PhaseTrackingModel:
+    """A phase net from a config (non-learned nets), a checkpoint or weights, its region set to the data's
+    bird's-eye bounds (as ``aaute test`` sets it). A config's net is built for ``source``'s array (any
+    channel count of at least 2) when one is given.
+
+    Raises:
+        ConfigError: no or several sources, a config of another net, a learned net without weights.
+        TrackingError: weights of a net that does not read one phase input.
+    """
+    if config is not None:
+        if ckpt_path is not None or weights is not None:
+            raise ConfigError("aaute track needs exactly one of --ckpt_path FILE, --weights NAME_OR_PATH and "
+                              "--config FILE")
+        mics = None
+        if source is not None:
+            require_positions(source, Path(config).stem)
+            mics = np.asarray(source.mic_positions, dtype=np.float64)
+        net, name, data, smoother = _from_config(Path(config), mics)
+        origin = str(config)
+    else:
+        net, name, origin, data = load_net(ckpt_path, weights, offline)
+        smoother = {}
+    if set(getattr(net, "inputs", {})) != {"audio_phase"}:
+        raise TrackingError(f"model {name!r} reads {dict(getattr(net, 'inputs', {}))}, not one phase input")
+    wanted = (data.get("inputs") or {}).get("audio_phase")
+    if wanted is not None and wanted != net.recipe.name:
+        raise ConfigError(f"{origin}: data.inputs.audio_phase {wanted!r} differs from the net's recipe "
+                          f"{net.recipe.name!r} (net_kwargs.input_recipes)")
+    preset = smoother.get("preset", "robust")
+    if preset not in ROBUST_PRESETS:
+        raise ConfigError(f"{origin}: live_smoother preset {preset!r} is not one of {sorted(ROBUST_PRESETS)}")
+    bounds = data.get("bev_bounds") or [[-2.0, 8.0], [-5.0, 25.0]]  # MMAUDDataModule's default
+    net.set_bounds(bounds)
+    return PhaseTrackingModel(net, name, net.recipe, net.recipe.span_seconds, origin, smoother)
+
+
+def is_phase_model(config: str | Path | None, ckpt_path: str | Path | None, weights: str | Path | None) -> bool:
+    """Whether ``aaute track``'s model arguments name a phase model (a config always does)."""
+    if config is not None:
+        return True
+    from zoo.weights import resolve_weights
+    from zoo.weights.files import read_file
+
+    if ckpt_path is not None:
+        stored = read_file(Path(ckpt_path)) if Path(ckpt_path).is_file() else {}
+        hyper = stored.get("hyper_parameters", {}) if isinstance(stored, dict) else {}
+        return hyper.get("net") in PHASE_NETS
+    contents, entry = resolve_weights(None, weights, None)
+    name = contents.net or (entry.name.split(".")[0] if entry else None)
+    inputs = contents.inputs or (entry.inputs if entry else {})
+    return name in PHASE_NETS or "audio_phase" in inputs
+
+
+# ============================================================================================ geometry
+
+
+def require_positions(source: AudioSource, model: str) -> None:
+    """Raise TrackingError, in one line saying what is needed, unless ``source`` knows its microphone positions."""
+    if not source.mic_positions_known:
+        raise TrackingError(f"{source.name}: model {model!r} steers with the microphone positions, which this "
+                            f"source does not give ({source.mic_source}); pass --mic-positions FILE (one 'x y z' "
+                            f"row in metres per channel)")
+
+
+def check_geometry(model: PhaseTrackingModel, source: AudioSource) -> np.ndarray:
+    """The source's microphone positions (channels x 3, m), checked for a phase model.
+
+    Raises:
+        TrackingError: positions unknown (a default array, or a recording that says so), a count other than
+            the channels, or a sample rate below twice the recipe's highest frequency.
+    """
+    require_positions(source, model.name)
+    mics = np.asarray(source.mic_positions, dtype=np.float64)
+    if mics.shape != (source.channels, 3):
+        raise TrackingError(f"{source.name}: {source.channels} audio channels but microphone positions of shape "
+                            f"{mics.shape} ({source.mic_source}); expected one x y z row per channel")
+    if source.sample_rate < 2 * model.recipe.f_max:
+        raise TrackingError(f"{source.name}: sample rate {source.sample_rate:g} Hz; model {model.name!r} reads "
+                            f"the band up to {model.recipe.f_max:g} Hz of recipe {model.recipe.name!r}, so it "
+                            f"needs at least {2 * model.recipe.f_max:g} Hz")
+    speed = float(getattr(model.net.steering, "speed_of_sound", 349.0))
+    distances = np.linalg.norm(mics[:, None] - mics[None], axis=-1)
+    aperture = float(distances.max())
+    if aperture / speed > model.recipe.max_delay:
+        log.warning("%s: microphones %.2f m apart: delays up to %.1f ms, beyond the recipe's %.1f ms lags; those "
+                    "pairs see no far source", source.name, aperture, 1e3 * aperture / speed,
+                    1e3 * model.recipe.max_delay)
+    region = model.net.region.numpy()
+    corners = np.array(np.meshgrid(*region, indexing="ij")).reshape(3, -1).T
+    far = float(np.linalg.norm(corners - mics.mean(axis=0), axis=1).max())
+    curvature = aperture ** 2 / (8 * far) / speed * model.recipe.lag_rate  # the wavefront's sagitta, in lags
+    if curvature < MIN_CURVATURE_LAGS:
+        log.warning("%s: a %.2f m aperture cannot resolve range at the region's far edge (%.0f m: the wavefront "
+                    "bends by %.2f lags across the array, under %g); expect directions, not distances",
+                    source.name, aperture, far, curvature, MIN_CURVATURE_LAGS)
+    return mics
+
+
+# ============================================================================================ thresholds
+
+
+def thresholds_file() -> Path:
+    """Where ``srp_phat``'s detection thresholds are kept between runs: ``$AAUTE_CACHE/srp_phat_thresholds.json``
+    or ``~/.cache/aaute/srp_phat_thresholds.json``."""
+    from zoo.weights.hub import weights_dir
+
+    return weights_dir().parent / "srp_phat_thresholds.json"
+
+
+def prepare_threshold(net: nn.Module, mics: torch.Tensor, path: Path | None = None) -> None:
+    """Give ``srp_phat`` its detection threshold for ``mics`` before the stream starts: from the thresholds
+    file when a run with the same settings and geometry stored it (:meth:`SRPPhat.threshold_key`), else
+    computed from the null statistic now (tens of seconds on one core) and stored there."""
+    if not hasattr(net, "threshold_key"):
+        return
+    import json
+
+    from datamodules.atomic import atomic_write
+
+    path = thresholds_file() if path is None else path
+    key = net.threshold_key(mics)
+    try:
+        stored = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        stored = {}
+    if isinstance(stored.get(key), float):
+        net.set_threshold(mics, stored[key])
+        log.info("srp_phat: detection threshold %.4f from %s", stored[key], path)
+        return
+    stored[key] = net.threshold(mics)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_write(path) as tmp:
+            tmp.write_text(json.dumps(stored, indent=1, sort_keys=True))
+    except OSError as error:  # a read-only cache costs the next run the computation, nothing else
+        log.warning("srp_phat: could not store the detection threshold in %s (%s)", path, error)
+
+
+# ============================================================================================ rows
+
+
+@dataclass
+class PhaseRow:
+    """One row of :data:`PHASE_COLUMNS`."""
+
+    timestamp: float
+    raw: np.ndarray
+    score: float
+    detected: bool
+    state: str
+    mean: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    std: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    resolved: bool = False
+
+    @property
+    def measured(self) -> bool:
+        return self.state in ("detected", "estimate")
+
+    def values(self) -> tuple[Any, ...]:
+        return (self.timestamp, *map(float, self.mean), *map(float, self.std), *map(float, self.raw),
+                float(self.score), int(self.detected), self.state)
+
+
+class GatedSmoothing:
+    """The online smoother over the measured rows of a stream, the rows given back in time order.
+
+    A measured row waits for its smoothed value (``lag`` seconds of later measurements, or until ``lag``
+    seconds of stream pass without one); a held row then takes the latest smoothed position, its std grown
+    by what the smoother's Matern-5/2 prior lets the track move in the time since (variance
+    ``outputscale * (1 - rho(dt))`` per axis, ``rho`` the prior's correlation, times the calibration
+    factor squared); a fallback row keeps its own position with std NaN.
+    """
+
+    def __init__(self, smoother: OnlineSmoother):
+        self.smoother = smoother
+        self.queue: deque[PhaseRow] = deque()
+        self.waiting: dict[float, PhaseRow] = {}
+        self.last_fed: float | None = None
+        self.latest: tuple[float, np.ndarray, np.ndarray] | None = None  #: time, mean, std of the last measured row
+        lengthscale, outputscale, _ = smoother.hyperparameters.arrays()
+        self._lengthscale, self._outputscale = lengthscale, outputscale
+
+    def held_std(self, std: np.ndarray, elapsed: float) -> np.ndarray:
+        """The std of a position held ``elapsed`` seconds after the smoothed one of std ``std`` (see above)."""
+        r = np.sqrt(5.0) * max(elapsed, 0.0) / self._lengthscale
+        moved = self._outputscale * (1.0 - (1.0 + r + r * r / 3.0) * np.exp(-r))
+        return np.sqrt(std ** 2 + self.smoother.scale ** 2 * moved)
+
+    def _fill(self, rows: list[OnlineRow]) -> None:
+        for row in rows:
+            target = self.waiting.pop(row.timestamp)
+            target.mean, target.std, target.resolved = np.asarray(row.mean), np.asarray(row.std), True
+
+    def add(self, row: PhaseRow) -> list[PhaseRow]:
+        """Take one row; return the rows now complete, in time order."""
+        self.queue.append(row)
+        if row.measured:
+            self.waiting[row.timestamp] = row
+            self._fill(self.smoother.update(row.timestamp, row.raw))
+            self.last_fed = row.timestamp
+        elif self.waiting and self.last_fed is not None and row.timestamp - self.last_fed >= self.smoother.lag:
+            self._fill(self.smoother.flush())  # no measurement for lag seconds: the waiting ones have their future
+        return self._ready()
+
+    def flush(self) -> list[PhaseRow]:
+        self._fill(self.smoother.flush())
+        return self._ready()
+
+    def _ready(self) -> list[PhaseRow]:
+        out = []
+        while self.queue and (self.queue[0].resolved or not self.queue[0].measured):
+            row = self.queue.popleft()
+            if row.measured:
+                self.latest = (row.timestamp, row.mean, row.std)
+            elif row.state == "held" and self.latest is not None:
+                row.mean, row.std = self.latest[1], self.held_std(self.latest[2], row.timestamp - self.latest[0])
+            else:
+                row.mean, row.std = row.raw.copy(), np.full(3, np.nan)
+            out.append(row)
+        return out
+
+
+class PhaseCsvWriter:
+    """Rows of :data:`PHASE_COLUMNS` as CSV lines, each flushed at once."""
+
+    def __init__(self, stream: IO[str]):
+        self.stream = stream
+        stream.write(",".join(PHASE_COLUMNS) + "\n")
+        stream.flush()
+
+    def write(self, row: PhaseRow) -> None:
+        t, *numbers, detected, state = row.values()
+        self.stream.write(f"{t:.6f}," + ",".join(f"{v:.6f}" for v in numbers) + f",{detected},{state}\n")
+        self.stream.flush()
+
+
+class PhaseMcapWriter(McapTrackWriter):
+    """Rows of :data:`PHASE_COLUMNS` as JSON messages on one MCAP topic (schema ``aaute/PhaseTrackPoint``)."""
+
+    SCHEMA = {"type": "object", "title": "aaute/PhaseTrackPoint",
+              "properties": {**{name: {"type": "number"} for name in PHASE_COLUMNS[:-2]},
+                             "detected": {"type": "boolean"}, "state": {"type": "string"}}}
+
+    def write(self, row: PhaseRow) -> None:  # type: ignore[override]
+        import json
+
+        from datamodules.recording import seconds_to_ns
+
+        values = dict(zip(PHASE_COLUMNS, row.values(), strict=True))
+        values = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in values.items()}
+        values["detected"] = bool(values["detected"])
+        stamp = int(seconds_to_ns(row.timestamp))
+        self.writer.add_message(self.channel, stamp, json.dumps(values).encode(), stamp, self.sequence)
+        self.sequence += 1
+        self.stream.flush()
+
+
+# ============================================================================================ tracker
+
+
+class PhaseTracker(Tracker):
+    """:class:`~zoo.deploy.tracking.Tracker` for a phase net (see the module docstring).
+
+    Args:
+        model: :func:`load_phase_model`.
+        source, writers, lag, hop_seconds, batch: as for :class:`~zoo.deploy.tracking.Tracker`.
+        preset: the online smoother's preset (default: the model's ``live_smoother`` preset, else ``robust``).
+    """
+
+    def __init__(self, model: PhaseTrackingModel, source: AudioSource, writers: list[Any], lag: float = 0.0,
+                 preset: str | None = None, hop_seconds: float = HOP_SECONDS, batch: int = 1):
+        self.mics = check_geometry(model, source)
+        preset = preset or model.live_smoother.get("preset", "robust")
+        super().__init__(model, source, writers, lag, preset, hop_seconds, batch)  # type: ignore[arg-type]
+        self.window = self.front.window
+        self.gated = GatedSmoothing(self.smoother)
+        self.mic_tensor = torch.from_numpy(self.mics.astype(np.float32))  # as the DataModule's batches carry them
+        prepare_threshold(model.net, self.mic_tensor.double())  # as the net keys the batch's geometry
+
+    def front_end(self) -> IncrementalPhase:
+        return IncrementalPhase(self.model.recipe, self.source.sample_rate, self.source.channels)  # type: ignore[arg-type]
+
+    def localise(self, features: torch.Tensor, times: list[float]) -> list[PhaseRow]:
+        """The net on windows (B x pairs x frames x lags) ending at ``times``, in stream order: one row each."""
+        b = features.shape[0]
+        inputs = {"audio_phase": features, "mic_positions": self.mic_tensor.expand(b, -1, -1),
+                  "time": torch.tensor(times, dtype=torch.float64), "sequence": torch.zeros(b, dtype=torch.long)}
+        with torch.inference_mode():
+            out = self.model.net(inputs)
+        positions = out["position"].double().numpy()
+        if "detected" in out:
+            scores, detected = out["detection_score"].double().numpy(), out["detected"].numpy()
+            states = list(self.model.net.gate.states)
+        else:
+            scores, detected, states = np.full(b, np.nan), np.ones(b, dtype=bool), ["estimate"] * b
+        return [PhaseRow(t, positions[i], float(scores[i]), bool(detected[i]), states[i])
+                for i, t in enumerate(times)]
+
+    def _positions(self, pending: list[tuple[int, torch.Tensor, float]], report: TrackingReport) -> None:
+        if not pending:
+            return
+        rows = self.localise(torch.stack([f for _, f, _ in pending]), [self._timestamp(s) for s, _, _ in pending])
+        report.updates += len(pending)
+        for (stop, _, arrival), row in zip(pending, rows, strict=True):
+            if not np.isfinite(row.raw).all():
+                log.warning("%s: model %s gave a non-finite position at %.3f s: skipped", self.source.name,
+                            self.model.name, self._timestamp(stop))
+                report.skipped_windows += 1
+                continue
+            self._emit(self.gated.add(row), report)  # type: ignore[arg-type]
+            self._record(arrival, report)
+        pending.clear()
+
+    def _record(self, arrival: float, report: TrackingReport) -> None:
+        import time
+
+        done = time.perf_counter()
+        report.latencies.append(done - arrival)
+        report.compute_seconds += done - max(arrival, report.busy_until)
+        report.busy_until = done
+
+    def _finish_rows(self) -> list[Any]:
+        return self.gated.flush()
