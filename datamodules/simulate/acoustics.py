@@ -28,7 +28,7 @@ from datamodules.simulate.drones import DroneSpec
 from datamodules.simulate.microphones import mic_geometry
 from datamodules.simulate.propagation import GROUNDS, absorption_db_per_m, level_to_pressure, speed_of_sound
 from datamodules.simulate.trajectory import Trajectory
-from datamodules.snr import SnrSpectrum, snr_spectrum
+from datamodules.snr import FRAME_SECONDS, SnrSpectrum, snr_spectrum
 
 
 @dataclass
@@ -61,7 +61,8 @@ class AudioResult:
     sample_rate: float
     mic_positions: np.ndarray
     snr_db: np.ndarray  #: per channel, drone vs everything else, 100 Hz - fs/2
-    snr_spectrum: SnrSpectrum  #: per channel, second and 25 Hz bin, drone vs everything else (ADC included)
+    #: per channel, second and 25 Hz bin, drone vs everything else (ADC included); None under one second of audio
+    snr_spectrum: SnrSpectrum | None
     ambient: AmbientRealisation
     flight_level_db: float
     clipped_samples: int
@@ -168,7 +169,9 @@ def render_audio(
     full_scale = np.sqrt(2.0) * level_to_pressure(config.full_scale_spl_db)
     digital, clipped = _quantise((drone + noise) / full_scale, config.bits)
     drone_share = drone / full_scale
-    spectrum = snr_spectrum(drone_share, digital - drone_share, fs)  # noise = all but the drone, ADC error too
+    spectrum = None  # noise = all but the drone, ADC error too; recorded per whole frame (one second)
+    if digital.shape[-1] >= round(FRAME_SECONDS * fs):
+        spectrum = snr_spectrum(drone_share, digital - drone_share, fs)
     return AudioResult(digital, fs, mics, snr, spectrum, ambient, source.flight_level_db, clipped, full_scale)
 
 

@@ -170,7 +170,6 @@ def simulate_recording(config: SimulationConfig, seed: int, index: int = 0, sequ
         "audio": {
             "snr_db": audio.snr_db.round(2).tolist(),
             "snr_db_mean": round(float(np.mean(audio.snr_db)), 2),
-            "snr_spectrum": audio.snr_spectrum.to_meta(),
             "ambient_dba": round(audio.ambient.level_dba, 2),
             "ambient_slope": round(audio.ambient.slope, 3),
             "wind_speed": round(audio.ambient.wind_speed, 3),
@@ -178,6 +177,7 @@ def simulate_recording(config: SimulationConfig, seed: int, index: int = 0, sequ
             "source_level_offset_db": round(audio.flight_level_db, 2),
             "full_scale_pa": audio.full_scale_pa,
             "clipped_samples": audio.clipped_samples,
+            **({} if audio.snr_spectrum is None else {"snr_spectrum": audio.snr_spectrum.to_meta()}),
         },
         "sensor_poses": {sensor: list(lidar_sim.LidarModel.preset(sensor).position)
                          for sensor in config.lidar_sensors},
