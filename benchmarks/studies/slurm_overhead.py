@@ -42,15 +42,16 @@ def write_suite(folder: Path, jobs: int, parallel: int, data: Path) -> Path:
     return path
 
 
-def measure(jobs: int, parallel: int, work: Path) -> list[dict[str, float | str]]:
-    """Both launchers on the same suite, twice each (local, slurm, slurm, local); one table row each."""
+def measure(jobs: int, parallel: int, work: Path, repeats: int = 2) -> list[dict[str, float | str]]:
+    """Both launchers on the same suite (``repeats`` 2: local, slurm, slurm, local); one table row each."""
     from benchmarks.results import read_results
     from benchmarks.runner import run_suite
     from benchmarks.suite import load_suite
 
     data = work / "data"
     runs: dict[str, list[tuple[float, float]]] = {"local": [], "slurm": []}
-    for index, launcher in enumerate(("local", "slurm", "slurm", "local")):
+    order = ("local", "slurm", "slurm", "local")[: 2 * repeats] if repeats <= 2 else ("local", "slurm") * repeats
+    for index, launcher in enumerate(order):
         folder = work / f"{launcher}{index}"
         folder.mkdir(parents=True, exist_ok=True)
         suite = load_suite(write_suite(folder, jobs, parallel, data))
@@ -74,13 +75,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--jobs", type=int, default=20, help="jobs in the suite")
     parser.add_argument("--parallel", type=int, default=2, help="jobs at once, both launchers")
+    parser.add_argument("--repeats", type=int, default=2, help="runs per launcher (2: local, slurm, slurm, local)")
     parser.add_argument("--work", type=Path, help="working folder (default: a temporary one)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     with tempfile.TemporaryDirectory() as tmp:
-        rows = measure(args.jobs, args.parallel, args.work or Path(tmp))
+        rows = measure(args.jobs, args.parallel, args.work or Path(tmp), args.repeats)
     print(f"{args.jobs} constant-position jobs, {args.parallel} at once, 1 thread per job")
-    print("| launcher | jobs | stage, mean of 2 (s) | job wall, mean (s) | outside the job, per job (s) "
+    print(f"| launcher | jobs | stage, mean of {args.repeats} (s) | job wall, mean (s) | outside the job, per job (s) "
           "| overhead vs local, per job (s) |")
     print("|---|---|---|---|---|---|")
     for row in rows:
