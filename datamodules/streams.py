@@ -31,6 +31,7 @@ import numpy as np
 
 from datamodules.audio_export import PCM_FORMATS
 from datamodules.errors import ConfigError
+from datamodules.formats.positions import read_mic_positions
 from datamodules.formats.ros_messages import full_scale
 from datamodules.recording import RecordingError
 
@@ -111,22 +112,6 @@ class RecordingSource(AudioSource):
                     time.sleep(delay)
             yield self.audio.read(start, start + size)
         self.leftover = total % size
-
-
-def read_mic_positions(path: str | Path, channels: int) -> np.ndarray:
-    """Microphone positions from a text file: one ``x y z`` row (m) per channel, spaces or commas.
-
-    Raises:
-        StreamError: the file does not hold ``channels`` rows of three numbers.
-    """
-    try:
-        positions = np.loadtxt(path, delimiter=None if "," not in Path(path).read_text() else ",", ndmin=2)
-    except ValueError as error:
-        raise StreamError(f"{path}: expected one 'x y z' row of numbers (m) per microphone ({error})") from None
-    if positions.shape != (channels, 3):
-        raise StreamError(f"{path}: expected {channels} rows of x y z (one per channel), got an array of shape "
-                          f"{positions.shape}")
-    return positions
 
 
 def default_mic_positions(channels: int, path: str | Path | None, source: str) -> tuple[np.ndarray, str]:

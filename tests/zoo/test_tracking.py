@@ -13,6 +13,7 @@ import torch
 
 from datamodules.features import mel_features
 from datamodules.formats import open_recording
+from datamodules.recording import RecordingError
 from datamodules.streams import PcmSource, RecordingSource, StreamError
 from zoo.deploy.tracking import Tracker, TrackingError, load_tracking_model
 
@@ -130,7 +131,7 @@ def test_track_from_wav_equals_offline_and_says_where_mics_come_from(recording_p
     mean, _, offline_mean, _ = _matched(rows.arrays(), offline_track)
     assert np.abs(mean - offline_mean).max() < 1e-4
     assert WavSource(wav, mic_positions=_mics(tmp_path, 4)).mic_source == str(_mics(tmp_path, 4))
-    with pytest.raises(StreamError, match="expected 4 rows of x y z"):
+    with pytest.raises(RecordingError, match=r"3 microphone position\(s\) for 4 audio channel"):
         WavSource(wav, mic_positions=_mics(tmp_path, 3))
 
 
