@@ -169,6 +169,20 @@ def run_on_slurm(suite: Suite, jobs: list[JobSpec], parallel: int, function: Cal
     pending = {handle.job_id: (job, handle) for job, handle in zip(jobs, handles, strict=True)}
     log.info("submitted %d job(s) as Slurm array %s (at most %d at once)", len(jobs),
              handles[0].job_id.split("_")[0], parallel)
+    try:
+        _follow(suite, pending, finish, start, poll_seconds)
+    except KeyboardInterrupt:  # the suite is stopped: so are its jobs (they would train on, unrecorded)
+        for _, handle in pending.values():
+            handle.cancel(check=False)
+        log.warning("interrupted: cancelled %d unfinished Slurm job(s) of array %s; a rerun submits them again",
+                    len(pending), handles[0].job_id.split("_")[0])
+        raise
+
+
+def _follow(suite: Suite, pending: dict[str, tuple[JobSpec, Any]],
+            finish: Callable[[JobSpec, Any, str | None, dict[str, Any]], bool], start: float,
+            poll_seconds: float) -> None:
+    """Poll ``squeue`` until every job of ``pending`` has ended, calling ``finish`` for each as it does."""
     done = failed = 0
     last_line = ""
     seen: set[str] = set()

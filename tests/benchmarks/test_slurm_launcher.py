@@ -20,6 +20,7 @@ from benchmarks.slurm import (
     ended_without_result,
     parse_squeue,
     require_slurm,
+    run_on_slurm,
     stage_counts,
 )
 from benchmarks.suite import expand_jobs, load_suite
@@ -75,3 +76,36 @@ def test_without_slurm_the_launcher_says_so_in_one_line(tmp_path, monkeypatch):
                                                                          "PYTHONPATH": str(REPO)})
     assert done.returncode == 2, done.stderr
     assert [line for line in done.stderr.splitlines() if "launcher slurm" in line] and "Traceback" not in done.stderr
+
+
+class _Handle:
+    """A submitted array task as run_on_slurm sees it: an id, result paths, and cancel()."""
+
+    def __init__(self, job_id: str, folder: Path):
+        self.job_id, self.cancelled = job_id, False
+        self.paths = type("Paths", (), {"result_pickle": folder / f"{job_id}_result.pkl"})()
+
+    def cancel(self, check: bool = True) -> None:
+        self.cancelled = True
+
+
+def test_an_interrupted_suite_cancels_its_unfinished_slurm_jobs(tmp_path, monkeypatch):
+    suite = load_suite(REPO / "configs" / "benchmark" / "paper.yaml", {"out": str(tmp_path)})
+    jobs = expand_jobs(suite)[:3]
+    handles = [_Handle(f"77_{i}", tmp_path) for i in range(3)]
+    handles[0].paths.result_pickle.write_bytes(b"")  # the first has finished
+    monkeypatch.setattr("benchmarks.slurm.submit_array", lambda *args: handles)
+    polls = iter([{"77_1": SlurmState("RUNNING", "", "vm"), "77_2": SlurmState("PENDING")}])
+
+    def queue():  # one poll, then the user presses Ctrl-C
+        try:
+            return next(polls)
+        except StopIteration:
+            raise KeyboardInterrupt from None
+
+    monkeypatch.setattr("benchmarks.slurm.queue_states", queue)
+    finished = []
+    with pytest.raises(KeyboardInterrupt):
+        run_on_slurm(suite, jobs, 1, print, lambda job, *rest: finished.append(job.job_id) or True, poll_seconds=0)
+    assert finished == [jobs[0].job_id]
+    assert [h.cancelled for h in handles] == [False, True, True]
