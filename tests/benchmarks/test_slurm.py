@@ -15,14 +15,13 @@ import time
 from pathlib import Path
 
 import pytest
-import yaml
 
 from benchmarks.results import read_results
 from benchmarks.runner import run_suite
 from benchmarks.suite import load_suite
+from tests.helpers.suites import REPO
+from tests.helpers.suites import write_suite as tiny_suite
 
-REPO = Path(__file__).resolve().parents[2]
-SPLIT = {"train": ["sim11-0000-avata"], "val": ["sim11-0001-m300"], "test": ["sim11-0002-mavic2"]}
 CLUSTER = "aaute"
 
 
@@ -48,30 +47,10 @@ pytestmark = [pytest.mark.slurm, pytest.mark.skipif(REASON is not None, reason=R
 
 
 def write_suite(path: Path, root: Path, cache: Path, **changes) -> Path:
-    """A suite of tiny jobs on the three 4 s simulated flights."""
-    suite = {
-        "name": changes.pop("name", "slurm"),
-        "out": str(path.parent / "out"),
-        "data": {"description": "three 4 s simulated flights", "kind": "simulated",
-                 "config": str(REPO / "configs/data/sim.yaml"), "root": str(root),
-                 "init_args": {"window_seconds": 1.0, "batch_size": 4, "cache_dir": str(cache)}},
-        "trainer": {"config": [str(REPO / "configs/trainer/default.yaml")],
-                    "overrides": {"accelerator": "cpu", "max_epochs": 1, "limit_train_batches": 2,
-                                  "limit_val_batches": 1, "enable_model_summary": False}},
-        "protocols": {"by_sequence": SPLIT},
-        "lights": ["ideal"],
-        "seeds": [0],
-        "smoothing": False,
-        "constant": ["gt", "pseudo"],
-        "bound": False,
-        "models": [{"model": "student", "config": str(REPO / "configs/model/student.yaml"),
-                    "args": {"model.lr": changes.pop("lr", 1e-4)}}],
-        "profile": False,
-        "launcher": {"kind": "slurm", "parallel": 2, "threads_per_job": 1, "timeout_min": 10},
-    }
-    suite.update(changes)
-    path.write_text(yaml.safe_dump(suite))
-    return path
+    """A suite of tiny jobs on the three 4 s simulated flights, sent to Slurm."""
+    slurm = {"name": "slurm", "lights": ["ideal"], "constant": ["gt", "pseudo"],
+             "launcher": {"kind": "slurm", "parallel": 2, "threads_per_job": 1, "timeout_min": 10}}
+    return tiny_suite(path, root=str(root), cache=str(cache), **{**slurm, **changes})
 
 
 def test_three_jobs_on_slurm_a_failure_keeps_the_others_and_a_rerun_submits_only_it(labelled_dir, feature_cache,

@@ -23,6 +23,7 @@ from datamodules.cli import main
 from datamodules.formats import mcap_file, open_recording
 from datamodules.formats.mcap_file import McapIndex, write_mcap
 from datamodules.recording import ArrayAudio, RecordingError, Track
+from tests.helpers.filesystem import deny_writes_under
 
 
 def tree_hashes(root: Path) -> dict[str, str]:
@@ -391,20 +392,11 @@ def test_a_wrong_channel_count_for_a_bag_is_named_as_such(given, words, tmp_path
 
 
 def test_simulate_into_a_folder_it_cannot_write_says_so_before_simulating(tmp_path, monkeypatch, capsys):
-    import os
-
     import datamodules.simulate.simulator as simulator
 
     out = tmp_path / "locked"
     out.mkdir()
-    real_open = os.open
-
-    def read_only(path, *args, **kwargs):  # what a folder of mode 555 does to a user other than root
-        if str(path).startswith(str(out)):
-            raise PermissionError(13, "Permission denied", str(path))
-        return real_open(path, *args, **kwargs)
-
-    monkeypatch.setattr(os, "open", read_only)
+    deny_writes_under(monkeypatch, out)
     simulated = []
     monkeypatch.setattr(simulator, "simulate_recording", lambda *args, **kwargs: simulated.append(args))
     assert main(["simulate", "--out", str(out), "--seconds", "1", "--sequences", "1"]) == 2

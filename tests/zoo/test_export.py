@@ -8,6 +8,7 @@ import sys
 import pytest
 import torch
 
+from tests.helpers.filesystem import deny_writes_under
 from zoo.cli import main
 from zoo.deploy.export import ExportError, export, export_onnx
 from zoo.registry import get_model
@@ -125,20 +126,11 @@ def test_a_failed_export_removes_every_file_it_wrote(tmp_path, monkeypatch, caps
 
 
 def test_export_into_a_folder_it_cannot_write_names_the_file_not_its_temporary(tmp_path, monkeypatch, capsys):
-    import os
-
     net = get_model("student", kernels=4, feature_dim=16).eval()
     source = save_weights_file(net, tmp_path / "trained.pt", {"kernels": 4, "feature_dim": 16})
     out = tmp_path / "locked"
     out.mkdir()
-    real_open = os.open
-
-    def read_only(path, *args, **kwargs):  # what a folder of mode 555 does to a user other than root
-        if str(path).startswith(str(out)):
-            raise PermissionError(13, "Permission denied", str(path))
-        return real_open(path, *args, **kwargs)
-
-    monkeypatch.setattr(os, "open", read_only)
+    deny_writes_under(monkeypatch, out)
     assert main(["export", "--weights", str(source), "--out", str(out / "student")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"aaute: error: {out / 'student.onnx'}: cannot write into {out}")

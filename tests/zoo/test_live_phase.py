@@ -224,7 +224,8 @@ def test_track_cli_with_a_config_and_a_positions_file(quiet_recording, tmp_path,
     out = capsys.readouterr().out.strip().splitlines()
     assert out[0] == "timestamp,x,y,z,std_x,std_y,std_z,raw_x,raw_y,raw_z,detection_score,detected,state"
     assert len(out) == 1 + 6 and out[1].split(",")[-1] in ("detected", "held", "fallback")
-    for args, message in (([], "pass --mic-positions FILE"), (["--mic-positions", str(wrong)], "3 microphone position(s) for 4 audio channel(s)")):
+    miscounted = "3 microphone position(s) for 4 audio channel(s)"
+    for args, message in (([], "pass --mic-positions FILE"), (["--mic-positions", str(wrong)], miscounted)):
         assert main(["track", "--config", str(config), "--audio", str(wav), *args]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and message in err[0]
