@@ -373,6 +373,8 @@ class PhaseTracker(Tracker):
         preset: the online smoother's preset (default: the model's ``live_smoother`` preset, else ``robust``).
     """
 
+    frame_kind = "GCC-PHAT"
+
     def __init__(self, model: PhaseTrackingModel, source: AudioSource, writers: list[Any], lag: float = 0.0,
                  preset: str | None = None, hop_seconds: float = HOP_SECONDS, batch: int = 1):
         self.mics = check_geometry(model, source)

@@ -212,6 +212,7 @@ class TrackingReport:
     threads: int = 1
     frames_computed: int = 0
     frames_used: int = 0
+    frame_kind: str = "STFT"  #: what the front end's frames are (STFT for mel recipes, GCC-PHAT for phase ones)
     ended: str = "end of stream"
 
     def summary(self) -> str:
@@ -224,8 +225,8 @@ class TrackingReport:
         return (f"{self.updates} updates, {self.rows} rows, {self.skipped_windows} windows skipped; latency per "
                 f"update median {median:.2f} ms, p95 {p95:.2f} ms (block arrival to line written); "
                 f"{self.audio_seconds:.1f} s of audio in {self.wall_seconds:.2f} s: {wall:.1f}x real time "
-                f"({busy:.1f}x counting compute only, {cpu:.1f}x in CPU time); STFT frames computed {share:.0%} of "
-                f"those used; "
+                f"({busy:.1f}x counting compute only, {cpu:.1f}x in CPU time); {self.frame_kind} frames computed "
+                f"{share:.0%} of those used; "
                 f"{self.threads} torch thread(s); ended by {self.ended}")
 
 
@@ -254,6 +255,8 @@ class Tracker:
             more raise the throughput of a replay (one matrix product instead of several) and delay the
             earlier windows of each batch by the later ones' blocks.
     """
+
+    frame_kind = "STFT"  #: the front end's frames, as the end-of-run report names them
 
     def __init__(self, model: TrackingModel, source: AudioSource, writers: Sequence[Any], lag: float = 0.0,
                  preset: str = "robust", hop_seconds: float = HOP_SECONDS, batch: int = 1):
@@ -319,7 +322,7 @@ class Tracker:
 
     def run(self) -> TrackingReport:
         """Track until the source ends (or stalls, or is interrupted); returns the report."""
-        report = TrackingReport(threads=torch.get_num_threads())
+        report = TrackingReport(threads=torch.get_num_threads(), frame_kind=self.frame_kind)
         wall_start, cpu_start = time.perf_counter(), time.process_time()
         blocks = self.source.blocks(self.block)
         pending: list[tuple[int, torch.Tensor, float]] = []  #: windows waiting for the net: stop, map, arrival
