@@ -150,7 +150,7 @@ class CandidateSearch:
         """
         n, k = points.shape[:2]
         lags = frames.shape[-1]
-        position = self.steering.pair_geometry(points, mics, direct_only=True)[0]  # N x K x P
+        position = self.steering.lag_positions(points, mics, direct_only=True)  # N x K x P
         window = torch.arange(-FIT_SEARCH, FIT_SEARCH + 1)
         index = (position.round().long()[..., None] + window).clamp(1, lags - 2)  # N x K x P x W
         batch = torch.arange(n)[:, None, None, None]
