@@ -150,7 +150,7 @@ class CandidateSearch:
         """
         n, k = points.shape[:2]
         lags = frames.shape[-1]
-        position = self.steering.pair_geometry(points, mics, direct_only=True)[0]  # N x K x P
+        position = self.steering.lag_positions(points, mics, direct_only=True)  # N x K x P
         window = torch.arange(-FIT_SEARCH, FIT_SEARCH + 1)
         index = (position.round().long()[..., None] + window).clamp(1, lags - 2)  # N x K x P x W
         batch = torch.arange(n)[:, None, None, None]
@@ -167,17 +167,19 @@ class CandidateSearch:
         scale = self.steering.recipe.lag_rate / self.steering.speed_of_sound
         half = (self.steering.recipe.num_lags() - 1) // 2
         m = mics.to(points.dtype)
+        identity = torch.eye(3)
         for _ in range(FIT_STEPS):
             direction = points[..., None, :] - m  # N x K x C x 3
             distance = torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-6)
             unit = direction / distance
-            jacobian = (unit[..., first, :] - unit[..., second, :]) * scale  # N x K x P x 3
+            jacobian = (unit.index_select(-2, first) - unit.index_select(-2, second)) * scale  # N x K x P x 3
             # the direct terms' lag columns (pair_geometry's, from the distances already at hand)
-            residual = (distance[..., first, 0] - distance[..., second, 0]) * scale + half - measured  # N x K x P
+            ranges = distance[..., 0]
+            residual = (ranges.index_select(-1, first) - ranges.index_select(-1, second)) * scale + half - measured
             jw = jacobian * weight[..., None]
             normal = jw.transpose(-1, -2) @ jacobian
             damping = FIT_DAMPING * normal.diagonal(dim1=-2, dim2=-1).mean(dim=-1)[..., None, None]
-            normal = normal + damping * torch.eye(3)
+            normal = normal + damping * identity
             step = torch.linalg.solve(normal, -(jw.transpose(-1, -2) @ residual[..., None]))[..., 0]
             moved = self.clamp(points + step.clamp(-FIT_MAX_STEP, FIT_MAX_STEP))
             converged = float((moved - points).abs().max()) < FIT_TOLERANCE

@@ -178,6 +178,24 @@ class Steering:
         """For ``points`` (... x 3): each term's fractional lag column and the norm of the gradient of
         its path difference (``|u_i - u_j|`` for unit vectors from the (virtual) mics, 0..2), ... x terms.
         ``direct_only``: the direct-direct terms (one per pair) alone."""
+        first, second, virtual, flat, cross, squared, distance = self._distances(points, mics, direct_only)
+        # index_select: the same values as fancy indexing of columns, several times faster
+        dot = (squared - cross.index_select(1, first) - cross.index_select(1, second)
+               + (virtual[first] * virtual[second]).sum(dim=1))
+        cosine = dot / (distance.index_select(1, first) * distance.index_select(1, second))
+        gradient = (2 - 2 * cosine).clamp_min(0).sqrt()
+        shape = (*points.shape[:-1], len(first))
+        return self._lag_columns(distance, first, second).reshape(shape), gradient.reshape(shape)
+
+    def lag_positions(self, points: torch.Tensor, mics: torch.Tensor, direct_only: bool = False) -> torch.Tensor:
+        """The first half of :meth:`pair_geometry` alone (each term's fractional lag column, ... x terms),
+        without the gradient's work: what the exact response and the delay fit read."""
+        first, second, *_, distance = self._distances(points, mics, direct_only)
+        return self._lag_columns(distance, first, second).reshape(*points.shape[:-1], len(first))
+
+    def _distances(self, points: torch.Tensor, mics: torch.Tensor, direct_only: bool) -> tuple[torch.Tensor, ...]:
+        """The terms' (virtual) microphone indices, the virtual mics, the flattened points, their products
+        with the mics, squared norms and distances to every (virtual) mic (M x V)."""
         first, second = self.terms(mics.shape[0])[:2]
         if direct_only:
             pairs = len(mic_pairs(mics.shape[0]))
@@ -188,14 +206,13 @@ class Steering:
         squared = (flat * flat).sum(dim=1, keepdim=True)
         mic_squared = (virtual * virtual).sum(dim=1)
         distance = (squared - 2 * cross + mic_squared).clamp_min(1e-12).sqrt()
-        delay = (distance[:, first] - distance[:, second]) / self.speed_of_sound
+        return first, second, virtual, flat, cross, squared, distance
+
+    def _lag_columns(self, distance: torch.Tensor, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
+        """Fractional lag column of each term (M x terms) from the distances (M x V)."""
+        delay = (distance.index_select(1, first) - distance.index_select(1, second)) / self.speed_of_sound
         half = (self.recipe.num_lags() - 1) // 2
-        position = delay * self.recipe.lag_rate + half
-        dot = squared - cross[:, first] - cross[:, second] + (virtual[first] * virtual[second]).sum(dim=1)
-        cosine = dot / (distance[:, first] * distance[:, second])
-        gradient = (2 - 2 * cosine).clamp_min(0).sqrt()
-        shape = (*points.shape[:-1], len(first))
-        return position.reshape(shape), gradient.reshape(shape)
+        return delay * self.recipe.lag_rate + half
 
     def near(self, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
         """Whether points (... x 3) lie within ``min_range`` of the microphones' centre (... x 1): no drone
@@ -247,7 +264,7 @@ class Steering:
         over terms, linearly interpolated between lags."""
         lags = correlation.shape[-1]
         terms = self.terms(mics.shape[0])
-        position = self.pair_geometry(points, mics)[0]  # N x K x T
+        position = self.lag_positions(points, mics)  # N x K x T
         low = position.floor().clamp(0, lags - 2)
         frac = (position - low).clamp(0, 1)
         low = low.long()
