@@ -42,9 +42,7 @@ from __future__ import annotations
 import numpy as np
 
 from datamodules.snr import SnrSpectrum
-
-#: m/s: ``datamodules.simulate.propagation.speed_of_sound(30.0)``, the simulator's air, as the phase nets use it
-SPEED_OF_SOUND = 349.0
+from zoo.nets.phase.steering import SPEED_OF_SOUND  # the phase nets' air (m/s), so the bound uses the same
 
 
 def delay_fisher_density(snr: np.ndarray, freqs: np.ndarray) -> np.ndarray:
