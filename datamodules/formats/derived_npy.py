@@ -176,8 +176,9 @@ def find_root_of(list_file: Path) -> Path:
                          f"pass the derived root explicitly")
 
 
-def read_layout_file(root: Path) -> dict[str, Any]:
-    """Options from ``<root>/aaute_layout.yaml`` (sample_rate, t0, drone, missing_audio), if present."""
+def read_layout_file(root: Path, keys: tuple[str, ...] = LAYOUT_KEYS) -> dict[str, Any]:
+    """Options from ``<root>/aaute_layout.yaml``, if present: by default a derived root's (sample_rate, t0, drone,
+    missing_audio); another layout passes the ``keys`` it takes."""
     path = Path(root) / LAYOUT_FILE
     if not path.is_file():
         return {}
@@ -187,8 +188,8 @@ def read_layout_file(root: Path) -> dict[str, Any]:
         options = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as error:
         raise RecordingError(f"{path}: not valid YAML ({error})") from error
-    if not isinstance(options, dict) or set(options) - set(LAYOUT_KEYS):
-        raise RecordingError(f"{path}: expected a mapping with keys among {LAYOUT_KEYS}, got {options!r}")
+    if not isinstance(options, dict) or set(options) - set(keys):
+        raise RecordingError(f"{path}: expected a mapping with keys among {list(keys)}, got {options!r}")
     return options
 
 

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from datamodules.formats.derived_npy import LAYOUT_FILE, read_layout_file
 from datamodules.formats.node_audio import AudioNode, combine_nodes
 from datamodules.formats.positions import parse_mic_positions, read_mic_positions
 from datamodules.formats.ros_messages import full_scale
@@ -44,7 +45,6 @@ from datamodules.recording import (
 
 log = logging.getLogger(__name__)
 
-LAYOUT_FILE = "aaute_layout.yaml"
 GROUND_TRUTH_FILE = "ground_truth.csv"
 POSITION_FILES = ("mic_positions.csv", "mic_positions.txt", "mic_positions.yaml", "mic_positions.yml")
 LAYOUT_KEYS = ("t0", "drone", "sequence_id", "mic_positions", "nodes_share_clock")
@@ -93,21 +93,6 @@ class WavFileAudio(AudioStream):
         return np.ascontiguousarray(block / np.float32(self._scale) if self._scale != 1.0 else block)
 
 
-def _layout(folder: Path) -> dict[str, Any]:
-    path = folder / LAYOUT_FILE
-    if not path.is_file():
-        return {}
-    import yaml
-
-    try:
-        layout = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as error:
-        raise RecordingError(f"{path}: not valid YAML ({error})") from None
-    if not isinstance(layout, dict) or set(layout) - set(LAYOUT_KEYS):
-        raise RecordingError(f"{path}: expected a mapping with keys among {list(LAYOUT_KEYS)}")
-    return layout
-
-
 def read_ground_truth_csv(path: Path) -> Track:
     """Ground truth from a CSV of columns t, x, y, z (and optionally valid).
 
@@ -148,7 +133,7 @@ def read_wav_folder(folder: str | Path, *, sequence_id: str | None = None, drone
     files = wav_files(folder)
     if not files:
         raise RecordingError(f"{folder}: no .wav files in this folder")
-    layout = _layout(folder)
+    layout = read_layout_file(folder, LAYOUT_KEYS)
     start = float(t0 if t0 is not None else layout.get("t0", 0.0))
     nodes = [AudioNode(p.name, WavFileAudio(p, start), 0.0, {"file": p.name}) for p in files]
     rates = {n.name: n.stream.sample_rate for n in nodes}
