@@ -38,8 +38,10 @@ from datamodules.cache import FeatureCache, array_fingerprint, path_fingerprint
 from datamodules.errors import ConfigError
 from datamodules.features import (
     DARK_MODES,
+    MelRecipe,
     PhaseWindows,
     audio_window,
+    final_resize,
     image_features,
     image_recipe,
     mel_features,
@@ -47,6 +49,7 @@ from datamodules.features import (
     phase_recipe,
     published_dark,
     scale_image,
+    stored_recipe,
 )
 from datamodules.formats.node_audio import warn_unshared_clocks
 from datamodules.formats.positions import require_mic_positions
@@ -466,7 +469,8 @@ class MMAUDDataModule(L.LightningDataModule):
             base += f"-{zlib.crc32(options):08x}"
         keys: dict[str, str] = {}
         if self.audio_recipe is not None:
-            recipe, audio = self.audio_recipe, recording.audio
+            # stored without a second resize (applied on reading): avfdti_224 and avfdti_13 share avfdti's entries
+            recipe, audio = stored_recipe(self.audio_recipe), recording.audio
             key = (f"mel-{recipe.key()}-{self.hparams.window_seconds:g}-{int(self.hparams.faithful_window_order)}"
                    f"-{WINDOW_INDEXING}-{base}")
             keys["audio_mel"] = key
@@ -516,7 +520,8 @@ class MMAUDDataModule(L.LightningDataModule):
         sequences = self.sequences[split_name]
         offset = {sequence_id: i for i, sequence_id in enumerate(self.sequence_ids)}
         return WindowDataset(sequences, self.cache, [offset[s.sequence_id] for s in sequences], light,
-                             self.hparams.dark_mode, self.hparams.train_dark_probability if train else 0.0)
+                             self.hparams.dark_mode, self.hparams.train_dark_probability if train else 0.0,
+                             mel_recipe=self.audio_recipe)
 
     def _loader(self, dataset: WindowDataset, shuffle: bool) -> DataLoader:
         return DataLoader(dataset, batch_size=self.hparams.batch_size, shuffle=shuffle,
@@ -540,8 +545,9 @@ class WindowDataset(Dataset):
     """Samples of several sequences; features are read from the memory-mapped cache on access."""
 
     def __init__(self, sequences: list[SequenceSamples], cache: FeatureCache, sequence_index: list[int],
-                 light: str, dark_mode: str, dark_probability: float):
+                 light: str, dark_mode: str, dark_probability: float, mel_recipe: MelRecipe | None = None):
         self.sequences = sequences
+        self.mel_recipe = mel_recipe  #: its second resize, if any, is applied to the cached map on reading
         self.cache = cache
         self.sequence_index = sequence_index
         self.light, self.dark_mode, self.dark_probability = light, dark_mode, dark_probability
@@ -575,7 +581,8 @@ class WindowDataset(Dataset):
         }
         row = int(seq.rows[i])  # a piece's samples index into its recording's cache entries
         if "audio_mel" in seq.feature_keys:
-            item["audio_mel"] = torch.from_numpy(np.array(self._array(seq.feature_keys["audio_mel"])[row]))
+            mel = torch.from_numpy(np.array(self._array(seq.feature_keys["audio_mel"])[row]))
+            item["audio_mel"] = final_resize(mel, self.mel_recipe) if self.mel_recipe is not None else mel
         if "audio_phase" in seq.feature_keys:
             phase = np.array(self._array(seq.feature_keys["audio_phase"])[row], dtype=np.float32)
             item["audio_phase"] = torch.from_numpy(phase)

@@ -26,11 +26,13 @@ from datamodules.features.mel import (
     MEL_RECIPES,
     MelRecipe,
     audio_window,
+    final_resize,
     frame_power_mel,
     mel_features,
     mel_frame_layout,
     mel_map,
     mel_recipe,
+    stored_recipe,
 )
 from datamodules.features.phase import (
     PHASE_RECIPES,
@@ -58,6 +60,7 @@ __all__ = [
     "PhaseRecipe",
     "PhaseWindows",
     "audio_window",
+    "final_resize",
     "frame_power_mel",
     "image_features",
     "image_recipe",
@@ -72,4 +75,5 @@ __all__ = [
     "published_dark",
     "scale_image",
     "split_frames",
+    "stored_recipe",
 ]

@@ -22,7 +22,7 @@ streaming twin of :func:`mel_features`, :class:`datamodules.features.incremental
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from functools import lru_cache
 
 import numpy as np
@@ -58,7 +58,9 @@ class MelRecipe:
         return (self.keep_rows or self.resize[0], self.resize[1])
 
     def key(self) -> str:
-        return hashlib.sha256(repr(sorted(asdict(self).items())).encode()).hexdigest()[:12]
+        """A hash of the settings (not the name): recipes that compute the same map share cache entries."""
+        settings = {k: v for k, v in asdict(self).items() if k != "name"}
+        return hashlib.sha256(repr(sorted(settings.items())).encode()).hexdigest()[:12]
 
 
 _RECIPE_A = dict(n_fft=2048, hop=512, n_mels=20, f_min=1000.0, f_max=8000.0, resize=(64, 64),
@@ -82,6 +84,25 @@ def mel_recipe(name: str) -> MelRecipe:
         return MEL_RECIPES[name]
     except KeyError:
         raise ValueError(f"unknown audio recipe {name!r}; known: {sorted(MEL_RECIPES)}") from None
+
+
+def stored_recipe(recipe: MelRecipe) -> MelRecipe:
+    """The recipe whose maps a feature cache stores: ``recipe`` without its second resize.
+
+    The second resize (VorasNet's 224 x 224, ASDNet's 13 x 13) is cheap and applied on reading
+    (:func:`final_resize`), so those recipes share AV-FDTI's 64 x 64 entries instead of storing a map
+    12x its size.
+    """
+    return replace(recipe, final_resize=None)
+
+
+def final_resize(stored_map: torch.Tensor, recipe: MelRecipe) -> torch.Tensor:
+    """Apply ``recipe``'s second resize, if any, to maps of :func:`stored_recipe` (... x C x H x W)."""
+    if recipe.final_resize is None:
+        return stored_map
+    with torch.no_grad():
+        out = resize(stored_map, list(recipe.final_resize), interpolation=InterpolationMode.BILINEAR, antialias=True)
+    return out.contiguous()
 
 
 def audio_window(
@@ -149,9 +170,7 @@ def mel_map(power_mel: torch.Tensor, recipe: MelRecipe) -> torch.Tensor:
         out = resize(spec, list(recipe.resize), interpolation=InterpolationMode.BILINEAR, antialias=True)
         if recipe.keep_rows is not None:
             out = out[:, : recipe.keep_rows]
-        if recipe.final_resize is not None:
-            out = resize(out, list(recipe.final_resize), interpolation=InterpolationMode.BILINEAR, antialias=True)
-    return out.contiguous()
+    return final_resize(out.contiguous(), recipe)
 
 
 def mel_features(samples: np.ndarray, sample_rate: float, recipe: MelRecipe) -> torch.Tensor:

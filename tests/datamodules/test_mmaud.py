@@ -84,6 +84,22 @@ def test_cache_is_reused_identical_and_rebuilt_for_another_recipe(simulated_dir,
     assert len(list((tmp_path / "cache").glob("*.npy"))) == 2 * len(files)
 
 
+
+def test_a_second_resize_is_applied_on_reading_and_shares_the_cached_map(simulated_dir, tmp_path):
+    from datamodules.features import audio_window, mel_features, mel_recipe
+
+    base = _module(simulated_dir, tmp_path, inputs={"audio_mel": "avfdti"})
+    files = sorted((tmp_path / "cache").glob("mel-*.npy"))
+    resized = _module(simulated_dir, tmp_path, inputs={"audio_mel": "avfdti_224"})
+    assert sorted((tmp_path / "cache").glob("mel-*.npy")) == files  # no second entry: the 64 x 64 maps are shared
+    item = resized.train_dataloader().dataset[3]["audio_mel"]
+    assert tuple(item.shape) == (4, 224, 224)
+    assert tuple(base.train_dataloader().dataset[3]["audio_mel"].shape) == (4, 64, 64)
+    recording = open_recording(resized.sequences["train"][0].path)
+    t = resized.sequences["train"][0].times[3]
+    recipe = mel_recipe("avfdti_224")
+    assert torch.equal(item, mel_features(audio_window(recording.audio, t, recipe, 1.0), 48000, recipe))
+
 def _fake(sequence_id: str, drone: str) -> Recording:
     return Recording(sequence_id, drone, ground_truth=Track([0.0, 0.1], [[0, 0, 0], [0, 0, 1]]))
 
