@@ -10,8 +10,8 @@ runs again in a folder:
 - a stale lock (a non-empty lock file nobody holds: its writer died; a job that ends normally empties
   it) is taken over with a warning;
 - the earlier run's files are moved aside to ``jobs/<job>.previous/`` (replacing an older one), so
-  the new run's checkpoints are ``checkpoints/last.ckpt`` again, never ``last-v1.ckpt`` beside a
-  stale ``last.ckpt``.
+  the new run's checkpoint has its plain name again (``checkpoints/best.ckpt``), never a ``-v1``
+  copy beside a stale one.
 """
 
 from __future__ import annotations

@@ -105,7 +105,16 @@ def run_job(job: JobSpec) -> dict[str, Any]:
             raise ValueError(f"unknown job kind {job.kind!r}")
     row.update(provenance(job.threads))
     row["wall_time_s"] = time.perf_counter() - start
+    row["peak_rss_mb"] = _peak_rss_mb()
     return row
+
+
+def _peak_rss_mb() -> float:
+    """The peak resident memory of this process so far, in MiB (Linux reports ``ru_maxrss`` in KiB)."""
+    import resource
+
+    kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kib / 1024 if sys.platform != "darwin" else kib / 2**20  # macOS reports bytes
 
 
 # ---------------------------------------------------------------------------------------------- data
@@ -174,7 +183,7 @@ def _train_and_test(job: JobSpec) -> dict[str, Any]:
     if task.learns:
         trainer.fit(task, datamodule=datamodule)
         best = getattr(trainer.checkpoint_callback, "best_model_path", "") or ""
-        ckpt_path = best or "last"
+        ckpt_path = best or None  # no validation loss to choose by: the weights of the last epoch, in memory
         if trainer.world_size > 1:  # tested in one process, so no metric or prediction is split between ranks
             if trainer.global_rank != 0:
                 _leave_process_group()

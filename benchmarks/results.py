@@ -62,11 +62,12 @@ PROFILE = ["params_total_M", "params_used_M", "gmacs", "gflops", "profile_inputs
            "latency_ms_1t", "latency_iqr_ms_1t", "latency_ms_all", "latency_iqr_ms_all", "threads_all",
            "throughput_batch", "throughput_1t", "throughput_all", "frontend_ms", "end_to_end_ms"]
 PROVENANCE = ["config_hash", "checkpoint_path", "predictions_path", "git_commit", "git_dirty", "versions",
-              "cpu", "gpu", "threads", "launcher", "slurm_job_id", "node", "started_at", "wall_time_s"]
+              "cpu", "gpu", "threads", "launcher", "slurm_job_id", "node", "started_at", "wall_time_s",
+              "peak_rss_mb"]
 BOUND = ["bound_median_m", "snr_source", "bound_band_hz"]
 COLUMNS = IDENTITY + METHOD + DATA + BUDGET + METRICS + BREAKDOWN + PROFILE + BOUND + PROVENANCE
 #: columns added to schema 1 after its first files were written: empty when an older file lacks them
-LATER_COLUMNS = ("smoother", "slurm_job_id", "node", *BOUND)
+LATER_COLUMNS = ("smoother", "slurm_job_id", "node", *BOUND, "peak_rss_mb")
 #: columns of a model job's per-window predictions CSV (``predictions_path``; written by jobs, read by plots)
 PREDICTION_COLUMNS = ["sequence_id", "recording_id", "drone", "light", "timestamp", "x", "y", "z",
                       "gt_x", "gt_y", "gt_z", "gt_valid", "smooth_x", "smooth_y", "smooth_z"]
@@ -189,9 +190,11 @@ def read_cells(path: str | Path) -> tuple[list[str], pd.DataFrame]:
 
 
 #: measured quantities: a number >= 0 or empty (the leaderboard ranks them)
-MEASURES = [*METRICS, *BREAKDOWN, *(c for c in PROFILE if c not in ("profile_inputs", "threads_all")), "wall_time_s"]
+MEASURES = [*METRICS, *BREAKDOWN, *(c for c in PROFILE if c not in ("profile_inputs", "threads_all")), "wall_time_s",
+            "peak_rss_mb"]
 NUMERIC = ["seed", "alpha", *DATA[6:], *BUDGET[:5], *METRICS, *BREAKDOWN,
-           *(c for c in PROFILE if c != "profile_inputs"), "bound_median_m", "threads", "wall_time_s"]
+           *(c for c in PROFILE if c != "profile_inputs"), "bound_median_m", "threads", "wall_time_s",
+           "peak_rss_mb"]
 
 
 def read_results(path: str | Path, check_values: bool = True) -> pd.DataFrame:

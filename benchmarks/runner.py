@@ -203,6 +203,8 @@ def finish_job(suite: Suite, job: JobSpec, handle: Any, kind: str, summary: RunS
             row[key] = _relative(row.get(key), suite.out)
         summary.done.append(job.job_id)
         status = f"ok in {row['wall_time_s']:.0f} s"
+        if row.get("peak_rss_mb") is not None:
+            status += f", peak {row['peak_rss_mb'] / 1024:.1f} GB"
         if row.get("E_ideal") is not None:
             status += f", E_ideal {row['E_ideal']:.2f} m"
     except Exception as error:  # the job's own failure, reported by submitit, or the launcher's

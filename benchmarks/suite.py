@@ -16,7 +16,7 @@ fails before anything trains. The keys (all paths relative to the working direct
       simulate: {sequences: 15, seconds: 20, seed: 0}   # optional: made first, reused when complete
       label: {workers: 2}                 # optional: the LiDAR teacher on recordings without labels
       init_args: {label_rate: 5.0}        # overrides of the data config (--data.<key>)
-    trainer: {config: [configs/trainer/default.yaml], overrides: {max_epochs: 5}}
+    trainer: {config: [configs/trainer/default.yaml, configs/trainer/best_only.yaml], overrides: {max_epochs: 5}}
     protocols: {by_sequence: {seed: 0, val: 0.2, test: 0.2}}
     lights: [ideal, dark]
     seeds: [0]

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import pytest
+import torch
 
 from benchmarks.results import read_results
 from benchmarks.runner import finished_jobs, run_suite
 from benchmarks.suite import SuiteError, check_job_args, expand_jobs, load_suite
 from tests.helpers.layouts import make_derived
 from tests.helpers.suites import REPO, SPLIT, write_suite
+from zoo.task import TrajectoryTask
 
 #: the paper suite expands to dozens of jobs whose LightningCLI arguments are each parsed: slow
 SUITES = [pytest.param(path, marks=pytest.mark.slow) if path.stem == "paper" else path
@@ -130,7 +132,13 @@ def test_the_mmaud_v1_suite_runs_on_a_derived_npy_copy(tmp_path, monkeypatch):
     rows = read_results(suite.results_path)
     assert set(rows["protocol"]) == {"time_blocks"} and set(rows["data_kind"]) == {"real"}
     assert (rows["n_train_sequences"] == 2).all() and (rows["n_test_sequences"] == 2).all()
-    assert rows["E_ideal"].notna().all()
+    assert rows["E_ideal"].notna().all() and (rows["peak_rss_mb"] > 100).all()
+    # one checkpoint per job: the best epoch's weights, no optimizer state, loadable on its own
+    checkpoints = tmp_path / "out" / "jobs" / "student-time_blocks-s0" / "checkpoints"
+    assert [p.name for p in checkpoints.iterdir()] == ["best.ckpt"]
+    state = torch.load(checkpoints / "best.ckpt", map_location="cpu", weights_only=False)
+    assert "optimizer_states" not in state and state["state_dict"]
+    assert TrajectoryTask.load_from_checkpoint(checkpoints / "best.ckpt", map_location="cpu").net is not None
 
 
 @pytest.mark.slow

@@ -18,7 +18,7 @@ def write_suite(path: Path, **changes) -> Path:
         "data": {"description": "three 4 s simulated flights", "kind": "simulated",
                  "config": str(REPO / "configs/data/sim.yaml"), "root": changes.pop("root"),
                  "init_args": {"window_seconds": 1.0, "batch_size": 4, "cache_dir": changes.pop("cache")}},
-        "trainer": {"config": [str(REPO / "configs/trainer/default.yaml")],
+        "trainer": {"config": [str(REPO / "configs/trainer" / name) for name in ("default.yaml", "best_only.yaml")],
                     "overrides": {"accelerator": "cpu", "max_epochs": 1, "limit_train_batches": 2,
                                   "limit_val_batches": 1, "enable_model_summary": False}},
         "protocols": {"by_sequence": SPLIT},
