@@ -333,9 +333,9 @@ class Steering:
         key = (mics.numpy().tobytes(), points.numpy().tobytes(), float(step))
         if self._matrix_key != key:
             self._matrix_key, self._matrix = key, self.steering_matrix(points, mics, step)
-        flat = pooled(correlation.to(torch.float32))
+        flat = pooled_columns(correlation.to(torch.float32))
         with sparse_warnings_ignored():
-            values = (self._matrix @ flat.T).T  # N x 2G
+            values = (self._matrix @ flat).T  # N x 2G
         return values.reshape(-1, 2, points.shape[0])
 
     def steering_matrix(self, points: torch.Tensor, mics: torch.Tensor, step: float) -> torch.Tensor:
