@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import torch
 
-from zoo.nets.phase.steering import Steering
+from datamodules.features import mic_pairs
+from zoo.nets.phase.steering import POOL_WIDTHS, Steering
 
-#: slots of the table (a power of two): about 13 MB at 24 terms, room for a few minutes of a stream's cubes
+#: slots of the table (a power of two): about 27 MB at 24 terms, room for a few minutes of a stream's cubes
 CUBE_SLOTS = 1 << 17
 #: odd multipliers mixing the bit patterns of a cube's x, y, z and side into one number
 _MIX = (0x9E3779B1, 0x85EBCA77, 0xC2B2AE3D, 0x27D4EB2F)
@@ -39,8 +40,10 @@ class CubeColumns:
             raise ValueError(f"slots must be a power of two, got {slots}")
         self.steering, self.mics, self.slots = steering, mics, int(slots)
         terms = len(steering.terms(mics.shape[0]).weights)
+        #: the pooled correlations' columns, the zero one last: a column of -1 (reads nothing) is stored as it
+        self.width = len(POOL_WIDTHS) * len(mic_pairs(mics.shape[0])) * steering.recipe.num_lags() + 1
         self.keys = torch.full((self.slots, 4), float("nan"))  #: each slot's cube: x, y, z, side (NaN: empty)
-        self.values = torch.zeros((self.slots, terms), dtype=torch.int32)  #: its columns
+        self.values = torch.zeros((self.slots, terms), dtype=torch.long)  #: its columns (as indices are: int64)
         self._mix = torch.tensor(_MIX, dtype=torch.int64)
         self._shift = 64 - (self.slots.bit_length() - 1)
         self.hits = 0  #: cubes read from the table
@@ -48,21 +51,21 @@ class CubeColumns:
 
     def columns(self, centres: torch.Tensor, sides: torch.Tensor) -> torch.Tensor:
         """The columns (... x terms) of the cubes of ``centres`` (... x 3, float32) and ``sides`` (..., float32):
-        :meth:`Steering.columns` of them, from the table where a cube is stored."""
+        :meth:`Steering.columns` of them (the zero column as its index, not -1), from the table where stored."""
         shape = centres.shape[:-1]
         cubes = torch.cat([centres.reshape(-1, 3), sides.reshape(-1, 1)], dim=1).to(torch.float32)
         bits = cubes.view(torch.int32).to(torch.int64)
         mixed = (bits * self._mix).sum(dim=1) * _GOLDEN  # wraps around, as intended
         slot = mixed.bitwise_right_shift_(self._shift).bitwise_and_(self.slots - 1)
         found = (self.keys.index_select(0, slot) == cubes).all(dim=1)
-        out = self.values.index_select(0, slot).long()
+        out = self.values.index_select(0, slot)
         missing = torch.nonzero(~found).flatten()
         if missing.numel():
             new = cubes[missing]
-            computed = self.steering.columns(new[:, :3], self.mics, new[:, 3:])
+            computed = self.steering.columns(new[:, :3], self.mics, new[:, 3:]).remainder_(self.width)
             out[missing] = computed
             self.keys[slot[missing]] = new
-            self.values[slot[missing]] = computed.int()
+            self.values[slot[missing]] = computed
         self.misses += int(missing.numel())
         self.hits += cubes.shape[0] - int(missing.numel())
         return out.reshape(*shape, out.shape[-1])

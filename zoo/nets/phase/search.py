@@ -18,8 +18,8 @@ from zoo.nets.phase.steering import (
     POOL_WIDTHS,
     Steering,
     cube_grid,
-    gather_columns,
-    pooled_columns,
+    gather,
+    pooled_layouts,
     sparse_warnings_ignored,
 )
 
@@ -136,14 +136,14 @@ class CandidateSearch:
     def refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor,
                keep: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One level: the 27 cubes of half the step around each point (N x k x 3), scored on the pooled
-        correlations ``flat`` (columns x N: :func:`~zoo.nets.phase.steering.pooled_columns`); the ``keep``
-        best (points, steps, scores). The cubes' columns come from the geometry's :meth:`cubes` table."""
+        correlations ``flat`` (N x columns); the ``keep`` best (points, steps, scores). The cubes' columns
+        come from the geometry's :meth:`cubes` table."""
         n = points.shape[0]
         steps = steps / 2
         children = self.clamp((points[:, :, None, :] + OFFSETS * steps[..., None, None]).reshape(n, -1, 3))
         child_steps = steps[:, :, None].expand(-1, -1, OFFSETS.shape[0]).reshape(n, -1)
         weights = self.steering.terms(mics.shape[0]).weights
-        scores = gather_columns(flat, self.cubes(mics).columns(children, child_steps), weights)
+        scores = gather(flat, self.cubes(mics).columns(children, child_steps), weights)
         best = scores.topk(min(keep, children.shape[1]), dim=1)
         return (torch.gather(children, 1, best.indices[..., None].expand(-1, -1, 3)),
                 torch.gather(child_steps, 1, best.indices), best.values)
@@ -240,16 +240,16 @@ class CandidateSearch:
         on its exact response.
         """
         b, f, p, lags = correlation.shape
-        corr = correlation.to(torch.float32)
+        corr = correlation.to(torch.float32).contiguous()
         groups = torch.tensor_split(torch.arange(f), min(self.search_groups, f))
-        mean = torch.stack([corr[:, rows].mean(dim=1) for rows in groups], dim=1).reshape(-1, p, lags)
+        mean = torch.stack([corr[:, int(rows[0]):int(rows[-1]) + 1].mean(dim=1) for rows in groups], dim=1)
         grid, sides, _ = self.coarse_grid(mics)
         k = min(self.candidates, grid.shape[0])
-        flat = pooled_columns(mean)
+        flat, flat_columns = pooled_layouts(mean.reshape(-1, p, lags))
         with sparse_warnings_ignored():
-            scores = (self.coarse_matrix(mics) @ flat).T.contiguous()  # B x G: every cell's pooled response
-        best = scores.topk(k, dim=1)  # B x G -> B x k
-        points, steps = grid[best.indices], sides[best.indices]
+            scores = self.coarse_matrix(mics) @ flat_columns  # G x B: every cell's pooled response at once
+        best = scores.topk(k, dim=0)  # G x B -> k x B
+        points, steps = grid[best.indices.T], sides[best.indices.T]
         for _ in range(WINDOW_LEVELS):
             points, steps, _ = self.refine(flat, points, steps, mics, k)
         points = points[:, : self.frame_candidates].reshape(b, len(groups), -1, 3)

@@ -105,14 +105,13 @@ def geometry_groups(phase: torch.Tensor, mics_batch: torch.Tensor | None, defaul
 # ------------------------------------------------------------------------------ pooled correlations
 
 
-def pooled_columns(corr: torch.Tensor) -> torch.Tensor:
-    """N x pairs x lags -> (levels * pairs * lags + 1) x N: the correlations max-pooled over +-w lags for each w
-    of POOL_WIDTHS, flattened (level, pair, lag) down the rows, one column per window and a zero row last.
+def _pool_levels(corr: torch.Tensor) -> list[torch.Tensor]:
+    """N x pairs x lags max-pooled over +-w lags for each w of POOL_WIDTHS (each N x pairs x lags).
 
     Each level is the maximum of the previous one at the two lags the widths' difference away (clamped to
     the ends; and at its own lag where the two spans leave a gap), so a width of 64 costs what a width of 1
     does; the values are exactly those of a max pool of width ``2 w + 1`` padded with -inf."""
-    n, pairs, lags = corr.shape
+    lags = corr.shape[-1]
     levels = [corr]
     for i in range(1, len(POOL_WIDTHS)):
         previous = levels[-1]
@@ -122,29 +121,42 @@ def pooled_columns(corr: torch.Tensor) -> torch.Tensor:
                             previous[..., -1:].expand(-1, -1, reach)], dim=-1)
         level = torch.maximum(padded[..., :lags], padded[..., 2 * reach:])
         levels.append(torch.maximum(level, previous) if reach > POOL_WIDTHS[i - 1] else level)  # else a gap
-    out = torch.zeros((len(POOL_WIDTHS) * pairs * lags + 1, n), dtype=corr.dtype)
-    out[:-1].view(len(POOL_WIDTHS), pairs, lags, n).copy_(torch.stack(levels).permute(0, 2, 3, 1))
-    return out
+    return levels
+
+
+def pooled_layouts(corr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """N x pairs x lags -> the correlations max-pooled at POOL_WIDTHS, flattened (level, pair, lag) with a zero
+    last, in both layouts: N x columns (:func:`pooled`, what :func:`gather` reads) and columns x N
+    (:func:`pooled_columns`, what the sparse steering matrices multiply)."""
+    n, pairs, lags = corr.shape
+    levels = torch.stack(_pool_levels(corr), dim=1)  # N x levels x pairs x lags
+    rows = torch.cat([levels.reshape(n, -1), torch.zeros(n, 1, dtype=corr.dtype)], dim=1)
+    columns = torch.zeros((rows.shape[1], n), dtype=corr.dtype)
+    columns[:-1].view(len(POOL_WIDTHS), pairs, lags, n).copy_(levels.permute(1, 2, 3, 0))
+    return rows, columns
 
 
 def pooled(corr: torch.Tensor) -> torch.Tensor:
-    """N x pairs x lags -> N x (levels * pairs * lags + 1): :func:`pooled_columns`, one row per window."""
-    return pooled_columns(corr).T
+    """N x pairs x lags -> N x (levels * pairs * lags + 1): max-pooled at POOL_WIDTHS, flattened, a zero last."""
+    n = corr.shape[0]
+    return torch.cat([torch.stack(_pool_levels(corr), dim=1).reshape(n, -1), torch.zeros(n, 1)], dim=1)
+
+
+def pooled_columns(corr: torch.Tensor) -> torch.Tensor:
+    """:func:`pooled` transposed (columns x N, contiguous): the right-hand side of a sparse steering product."""
+    return pooled_layouts(corr)[1]
 
 
 def gather(flat: torch.Tensor, columns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     """Weighted mean over terms of ``flat`` (N x columns, a zero column last: :func:`pooled`) at ``columns``
     (N x K x T or K x T, from :meth:`Steering.columns`)."""
-    rows = slice(None) if columns.dim() == 2 else torch.arange(flat.shape[0])[:, None, None]
-    values = flat[rows, columns]
-    return (values * (weights / weights.sum())).sum(dim=-1)
-
-
-def gather_columns(flat_columns: torch.Tensor, columns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
-    """:func:`gather` from :func:`pooled_columns` (columns x N) at ``columns`` (N x K x T): N x K."""
-    n = flat_columns.shape[1]
-    index = columns * n + torch.arange(n)[:, None, None]
-    values = flat_columns.reshape(-1).take(index)
+    if columns.dim() == 2:
+        values = flat[:, columns]
+    else:
+        index = columns.reshape(flat.shape[0], -1)
+        if bool((index < 0).any()):  # -1: the zero column, last
+            index = index.remainder(flat.shape[1])
+        values = torch.gather(flat, 1, index).reshape(columns.shape)
     return (values * (weights / weights.sum())).sum(dim=-1)
 
 
@@ -159,7 +171,7 @@ def _block_pairs(blocks: int) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 @lru_cache(maxsize=4)
-def _pool_levels(limit: int) -> torch.Tensor:
+def _level_of_span(limit: int) -> torch.Tensor:
     """For each whole number of lags 0 .. ``limit``, the first POOL_WIDTHS level that wide (the last beyond)."""
     spans = torch.arange(limit + 1, dtype=torch.float64)
     return torch.bucketize(spans, torch.tensor(POOL_WIDTHS, dtype=torch.float64)).clamp(max=len(POOL_WIDTHS) - 1)
@@ -281,7 +293,10 @@ class Steering:
         keep = [torch.ones_like(grouped[:, 0], dtype=torch.bool)]
         first = 0
         for t in range(1, blocks):  # block t against blocks 0 .. t-1: rows first .. first + t - 1 of apart
-            keep.append(apart[:, first:first + t].all(dim=1) if t > 1 else apart[:, first])
+            kept = apart[:, first]
+            for row in range(first + 1, first + t):
+                kept = kept & apart[:, row]  # explicit: all() over a short middle axis is several times slower
+            keep.append(kept)
             first += t
         return torch.stack(keep, dim=1).reshape(position.shape)
 
@@ -299,7 +314,7 @@ class Steering:
         position, gradient = self.pair_geometry(points, mics)
         width = gradient * self.lag_scale(step)
         # the level of each whole number of lags from a table (a binary search per term is several times slower)
-        level = _pool_levels(POOL_WIDTHS[-1] + 1).take(width.ceil().clamp(max=POOL_WIDTHS[-1] + 1).long())
+        level = _level_of_span(POOL_WIDTHS[-1] + 1).take(width.ceil().clamp(max=POOL_WIDTHS[-1] + 1).long())
         index = position.round().long()
         outside = (index < 0) | (index >= lags) | ~self.distinct(position, mics.shape[0]) | self.near(points, mics)
         columns = (level * pairs + rows) * lags + index.clamp(0, lags - 1)
