@@ -100,8 +100,18 @@ def pair_indices(channels: int) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.tensor([i for i, _ in pairs]), torch.tensor([j for _, j in pairs])
 
 
-#: complex values up to which :class:`GccPhat` keeps its inverse FFT's input for the next call (32 MB)
+#: values up to which :class:`GccPhat` keeps its FFTs' zero-padded inputs for the next call (at most 32 MB)
 SPECTRUM_REUSE = 1 << 22
+
+
+def _zeros_or_kept(kept: torch.Tensor | None, shape: tuple[int, ...], dtype: torch.dtype
+                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``kept`` when it has ``shape``, else a new zero tensor; and what to keep for the next call (the tensor
+    when it holds at most :data:`SPECTRUM_REUSE` values)."""
+    if kept is not None and kept.shape == shape:
+        return kept, kept
+    tensor = torch.zeros(shape, dtype=dtype)
+    return tensor, (tensor if tensor.numel() <= SPECTRUM_REUSE else None)
 
 
 class GccPhat:
@@ -126,18 +136,20 @@ class GccPhat:
         self.scale = self.n_out / (2.0 * max(int(keep.sum()), 1))
         self.first, self.second = pair_indices(channels)
         self.window = torch.hann_window(self.frame, periodic=False, dtype=torch.float32)
-        #: the last full spectrum handed to the inverse FFT (zero outside the band, which each use overwrites)
+        #: the last zero-padded frames handed to the FFT and full spectra handed to the inverse FFT (both zero
+        #: where no call writes: the padding, and outside the band), kept for the next call of the same shape
+        self._pad: torch.Tensor | None = None
         self._full: torch.Tensor | None = None
 
     def _spectrum(self, shape: tuple[int, ...]) -> torch.Tensor:
-        """A complex64 tensor of ``shape``, zero outside the band: the last one when its shape and small size
-        allow (a stream's windows all have one shape), else a new one."""
-        if self._full is not None and self._full.shape == shape:
-            return self._full
-        full = torch.zeros(shape, dtype=torch.complex64)
-        if full.numel() <= SPECTRUM_REUSE:
-            self._full = full
+        """A complex64 tensor of ``shape``, zero outside the band (which its users overwrite)."""
+        full, self._full = _zeros_or_kept(self._full, shape, torch.complex64)
         return full
+
+    def _padded(self, frames: tuple[int, ...]) -> torch.Tensor:
+        """A float32 tensor of frames x ``n_fft`` samples whose second half (the zero padding) is zero."""
+        padded, self._pad = _zeros_or_kept(self._pad, (*frames, self.n_fft), torch.float32)
+        return padded
 
     def cross_spectra(self, frames: torch.Tensor) -> torch.Tensor:
         """C x F x frame samples -> pairs x F x band bins (complex64).
@@ -145,8 +157,8 @@ class GccPhat:
         Single precision throughout, as the samples come (float32). A static mean subtracted from them
         is kept in double precision (it averages thousands of frames) and subtracted in single: the
         features' error from this stays near 1e-6, a thousandth of the float16 feature cache's resolution."""
-        padded = torch.zeros((*frames.shape[:-1], self.n_fft), dtype=torch.float32)
-        torch.mul(frames, self.window, out=padded[..., :self.frame])  # the zero padding, without a second copy
+        padded = self._padded(frames.shape[:-1])
+        torch.mul(frames, self.window, out=padded[..., :self.frame])  # its second half stays zero
         spectra = torch.fft.rfft(padded)[..., self.band]
         return spectra.index_select(0, self.first) * spectra.index_select(0, self.second).conj()
 

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from datamodules.features import mic_pairs, pair_indices
-from zoo.nets.phase.cubes import CubeColumns
+from zoo.nets.phase.cubes import CHILDREN, CubeColumns, child_ids
 from zoo.nets.phase.steering import (
     POOL_WIDTHS,
     Steering,
@@ -133,20 +133,31 @@ class CandidateSearch:
                     matrix.crow_indices().int(), matrix.col_indices().int(), matrix.values(), size)
         return self._coarse_matrices[key]
 
-    def refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor,
-               keep: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor, keep: int,
+               names: torch.Tensor | None = None, level: int = 0
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """One level: the 27 cubes of half the step around each point (N x k x 3), scored on the pooled
-        correlations ``flat`` (N x columns); the ``keep`` best (points, steps, scores). The cubes' columns
-        come from the geometry's :meth:`cubes` table."""
-        n = points.shape[0]
+        correlations ``flat`` (N x columns); the ``keep`` best (points, steps, scores, names). With the
+        points' ``names`` (N x k, :func:`~zoo.nets.phase.cubes.child_ids`) and their refinement ``level``,
+        the cubes' columns come from the geometry's :meth:`cubes` table."""
+        n, k = points.shape[:2]
         steps = steps / 2
-        children = self.clamp((points[:, :, None, :] + OFFSETS * steps[..., None, None]).reshape(n, -1, 3))
-        child_steps = steps[:, :, None].expand(-1, -1, OFFSETS.shape[0]).reshape(n, -1)
+        children = self.clamp(points[:, :, None, :] + OFFSETS * steps[..., None, None])  # N x k x 27 x 3
+        child_steps = steps[:, :, None].expand(-1, -1, CHILDREN)
+        if names is None:
+            columns = self.steering.columns(children.reshape(n, -1, 3), mics, child_steps.reshape(n, -1, 1))
+        else:
+            columns = self.cubes(mics).children(level, names.reshape(-1), children.reshape(n * k, CHILDREN, 3),
+                                                child_steps.reshape(n * k, CHILDREN))
         weights = self.steering.terms(mics.shape[0]).weights
-        scores = gather(flat, self.cubes(mics).columns(children, child_steps), weights)
-        best = scores.topk(min(keep, children.shape[1]), dim=1)
-        return (torch.gather(children, 1, best.indices[..., None].expand(-1, -1, 3)),
-                torch.gather(child_steps, 1, best.indices), best.values)
+        scores = gather(flat, columns.reshape(n, k * CHILDREN, -1), weights)
+        best = scores.topk(min(keep, k * CHILDREN), dim=1)
+        chosen = (torch.gather(children.reshape(n, -1, 3), 1, best.indices[..., None].expand(-1, -1, 3)),
+                  torch.gather(child_steps.reshape(n, -1), 1, best.indices), best.values)
+        if names is None:
+            return *chosen, None
+        parents = torch.gather(names, 1, best.indices // CHILDREN)
+        return *chosen, child_ids(parents, best.indices % CHILDREN)
 
     def refine_exact(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor
                      ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -249,9 +260,10 @@ class CandidateSearch:
         with sparse_warnings_ignored():
             scores = self.coarse_matrix(mics) @ flat_columns  # G x B: every cell's pooled response at once
         best = scores.topk(k, dim=0)  # G x B -> k x B
-        points, steps = grid[best.indices.T], sides[best.indices.T]
-        for _ in range(WINDOW_LEVELS):
-            points, steps, _ = self.refine(flat, points, steps, mics, k)
+        names = best.indices.T  # B x k: the coarse cells, by index (the names of their cubes' parents)
+        points, steps = grid[names], sides[names]
+        for level in range(WINDOW_LEVELS):
+            points, steps, _, names = self.refine(flat, points, steps, mics, k, names, level)
         points = points[:, : self.frame_candidates].reshape(b, len(groups), -1, 3)
         # per frame: fit its group's candidates to the pair delays measured near their own, then refine
         # them on the exact (multipath) response
