@@ -93,7 +93,10 @@ class IncrementalPhase:
         missing = [s for s in dict.fromkeys(starts) if s not in self._store]
         computed = None
         if missing:
-            frames = np.stack([self._samples(s, s + self.frame) for s in missing], axis=1)  # C x M x frame
+            if missing[-1] - missing[0] == (len(missing) - 1) * self.frame:  # back to back: a view, no copy
+                frames = self._samples(missing[0], missing[-1] + self.frame).reshape(self.channels, len(missing), -1)
+            else:
+                frames = np.stack([self._samples(s, s + self.frame) for s in missing], axis=1)  # C x M x frame
             finite = np.isfinite(frames).all(axis=(0, 2))
             if not finite.all():
                 frames = np.nan_to_num(frames)

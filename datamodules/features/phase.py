@@ -104,14 +104,19 @@ def pair_indices(channels: int) -> tuple[torch.Tensor, torch.Tensor]:
 SPECTRUM_REUSE = 1 << 22
 
 
-def _zeros_or_kept(kept: torch.Tensor | None, shape: tuple[int, ...], dtype: torch.dtype
-                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """``kept`` when it has ``shape``, else a new zero tensor; and what to keep for the next call (the tensor
-    when it holds at most :data:`SPECTRUM_REUSE` values)."""
-    if kept is not None and kept.shape == shape:
-        return kept, kept
+def _zeros_kept(kept: dict[tuple[int, ...], torch.Tensor], shape: tuple[int, ...], dtype: torch.dtype
+                ) -> torch.Tensor:
+    """The zero tensor of ``shape`` in ``kept`` (callers overwrite only its parts that they need nonzero), else
+    a new one, kept there when it holds at most :data:`SPECTRUM_REUSE` values (a stream has two or three
+    shapes: its windows' and its single frames')."""
+    if shape in kept:
+        return kept[shape]
     tensor = torch.zeros(shape, dtype=dtype)
-    return tensor, (tensor if tensor.numel() <= SPECTRUM_REUSE else None)
+    if tensor.numel() <= SPECTRUM_REUSE:
+        if len(kept) >= 4:
+            kept.clear()
+        kept[shape] = tensor
+    return tensor
 
 
 class GccPhat:
@@ -138,18 +143,16 @@ class GccPhat:
         self.window = torch.hann_window(self.frame, periodic=False, dtype=torch.float32)
         #: the last zero-padded frames handed to the FFT and full spectra handed to the inverse FFT (both zero
         #: where no call writes: the padding, and outside the band), kept for the next call of the same shape
-        self._pad: torch.Tensor | None = None
-        self._full: torch.Tensor | None = None
+        self._pad: dict[tuple[int, ...], torch.Tensor] = {}
+        self._full: dict[tuple[int, ...], torch.Tensor] = {}
 
     def _spectrum(self, shape: tuple[int, ...]) -> torch.Tensor:
         """A complex64 tensor of ``shape``, zero outside the band (which its users overwrite)."""
-        full, self._full = _zeros_or_kept(self._full, shape, torch.complex64)
-        return full
+        return _zeros_kept(self._full, shape, torch.complex64)
 
     def _padded(self, frames: tuple[int, ...]) -> torch.Tensor:
         """A float32 tensor of frames x ``n_fft`` samples whose second half (the zero padding) is zero."""
-        padded, self._pad = _zeros_or_kept(self._pad, (*frames, self.n_fft), torch.float32)
-        return padded
+        return _zeros_kept(self._pad, (*frames, self.n_fft), torch.float32)
 
     def cross_spectra(self, frames: torch.Tensor) -> torch.Tensor:
         """C x F x frame samples -> pairs x F x band bins (complex64).
