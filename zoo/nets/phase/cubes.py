@@ -70,4 +70,4 @@ class CubeColumns:
             self.slots.update((name, first + i) for i, name in enumerate(new))
         self.misses += len(new)
         self.hits += len(names) - len(new)
-        return self.blocks[torch.tensor([self.slots[name] for name in names])]
+        return self.blocks.index_select(0, torch.tensor([self.slots[name] for name in names]))

@@ -146,11 +146,12 @@ class CandidateSearch:
         child_steps = steps[:, :, None].expand(-1, -1, CHILDREN)
         if names is None:
             columns = self.steering.columns(children.reshape(n, -1, 3), mics, child_steps.reshape(n, -1, 1))
+            columns = columns.remainder_(flat.shape[1])  # -1 (reads nothing): the zero column's index
         else:
             columns = self.cubes(mics).children(level, names.reshape(-1), children.reshape(n * k, CHILDREN, 3),
                                                 child_steps.reshape(n * k, CHILDREN))
         weights = self.steering.terms(mics.shape[0]).weights
-        scores = gather(flat, columns.reshape(n, k * CHILDREN, -1), weights)
+        scores = gather(flat, columns.reshape(n, k * CHILDREN, -1), weights, wrapped=True)
         best = scores.topk(min(keep, k * CHILDREN), dim=1)
         chosen = (torch.gather(children.reshape(n, -1, 3), 1, best.indices[..., None].expand(-1, -1, 3)),
                   torch.gather(child_steps.reshape(n, -1), 1, best.indices), best.values)

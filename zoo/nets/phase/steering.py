@@ -147,14 +147,14 @@ def pooled_columns(corr: torch.Tensor) -> torch.Tensor:
     return pooled_layouts(corr)[1]
 
 
-def gather(flat: torch.Tensor, columns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+def gather(flat: torch.Tensor, columns: torch.Tensor, weights: torch.Tensor, wrapped: bool = False) -> torch.Tensor:
     """Weighted mean over terms of ``flat`` (N x columns, a zero column last: :func:`pooled`) at ``columns``
-    (N x K x T or K x T, from :meth:`Steering.columns`)."""
+    (N x K x T or K x T, from :meth:`Steering.columns`; ``wrapped``: with the zero column as its index, not -1)."""
     if columns.dim() == 2:
         values = flat[:, columns]
     else:
         index = columns.reshape(flat.shape[0], -1)
-        if bool((index < 0).any()):  # -1: the zero column, last
+        if not wrapped:  # -1: the zero column, last
             index = index.remainder(flat.shape[1])
         values = torch.gather(flat, 1, index).reshape(columns.shape)
     return (values * (weights / weights.sum())).sum(dim=-1)
