@@ -221,7 +221,7 @@ class CandidateSearch:
         diagonal = np.arange(3)
         for _ in range(FIT_STEPS):
             direction = points[:, None, :] - m  # M x C x 3
-            distance = np.sqrt((direction * direction).sum(axis=-1))
+            distance = np.sqrt(np.add.reduce(direction * direction, axis=-1))
             np.maximum(distance, np.float32(1e-6), out=distance)
             np.divide(direction, distance[..., None], out=unit_range[..., :3])
             unit_range[..., 3] = distance
@@ -233,10 +233,12 @@ class CandidateSearch:
             residual -= measured
             normal = (jacobian[..., :3] * weight).transpose(0, 2, 1) @ jacobian  # M x 3 x 4: J'WJ | J'Wr
             matrix = normal[..., :3]
-            matrix[:, diagonal, diagonal] += matrix[:, diagonal, diagonal].sum(axis=-1, keepdims=True) * damping
+            trace = np.add.reduce(matrix[:, diagonal, diagonal], axis=-1, keepdims=True)
+            matrix[:, diagonal, diagonal] += trace * damping
             step = np.linalg.solve(matrix, -normal[..., 3:])[..., 0]
-            moved = np.clip(points + np.clip(step, -largest, largest), low, high)
-            converged = float(np.abs(moved - points).max()) < FIT_TOLERANCE
+            # np.minimum / np.maximum: np.clip's same values behind several layers of Python
+            moved = np.minimum(np.maximum(points + np.minimum(np.maximum(step, -largest), largest), low), high)
+            converged = float(np.maximum.reduce(np.abs(moved - points), axis=None)) < FIT_TOLERANCE
             points = moved
             if converged:
                 break
