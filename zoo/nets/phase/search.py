@@ -4,7 +4,8 @@
 windows of correlations: a coarse grid of cells (split near the array) scored on max-pooled
 correlations, levels of 27-cube refinement, then per frame a Gauss-Newton fit of each candidate to the
 frame's pair delays and a hill climb on its exact response. It owns the search region (clamping every
-step to it) and caches each geometry's coarse grid.
+step to it) and caches each geometry's coarse grid, its sparse scoring matrix and its table of refinement
+cubes' columns (:mod:`zoo.nets.phase.cubes`), none of which depends on the audio.
 """
 
 from __future__ import annotations
