@@ -49,11 +49,11 @@ class CandidateSearch:
 
     def __init__(self, steering: Steering, region: torch.Tensor, coarse_step: float = 1.0, fine_step: float = 0.0625,
                  candidates: int = 32, frame_candidates: int = 4, search_groups: int = 1, refine_levels: int = 1,
-                 fit_delays: bool = True):
+                 fit_delays: bool = True, fit_steps: int = FIT_STEPS):
         """Args:
             steering: the geometry the responses are read with.
             region: the searched region (3 x 2, m, rig frame); :meth:`set_region` changes it.
-            coarse_step, fine_step, candidates, frame_candidates, search_groups, refine_levels, fit_delays:
+            coarse_step, fine_step, candidates, frame_candidates, search_groups, refine_levels, fit_delays, fit_steps:
                 as in :class:`zoo.nets.phase.srp_phat.SRPPhat`.
         """
         self.steering = steering
@@ -64,6 +64,9 @@ class CandidateSearch:
         self.candidates = int(candidates)
         self.refine_levels = int(refine_levels)
         self.uses_delay_fit = bool(fit_delays)
+        self.fit_steps = int(fit_steps)
+        if self.fit_steps < 1:
+            raise ValueError(f"srp_phat: fit_steps must be >= 1, got {fit_steps}")
         self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._coarse_matrices: dict[bytes, torch.Tensor] = {}
         self._cubes: dict[bytes, CubeColumns] = {}  #: per geometry, the refinement cubes' columns
@@ -220,7 +223,7 @@ class CandidateSearch:
         weight = weight.reshape(points.shape[0], -1, 1)
         unit_range = np.empty((points.shape[0], m.shape[0], 4), dtype=np.float32)  # unit vector, distance
         diagonal = np.arange(3)
-        for _ in range(FIT_STEPS):
+        for _ in range(self.fit_steps):
             direction = points[:, None, :] - m  # M x C x 3
             distance = np.sqrt(np.add.reduce(direction * direction, axis=-1))
             np.maximum(distance, np.float32(1e-6), out=distance)
