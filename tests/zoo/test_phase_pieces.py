@@ -97,3 +97,14 @@ def test_pooled_layouts_equal_max_pools_and_each_other():
     expected = torch.cat([torch.stack(reference, dim=1).reshape(3, -1), torch.zeros(3, 1)], dim=1)
     assert torch.equal(rows, expected) and torch.equal(columns, expected.T) and columns.is_contiguous()
     assert torch.equal(pooled(corr), expected)
+
+
+def test_a_capped_delay_fit_has_its_own_threshold_key_and_the_default_keeps_the_old_one():
+    from zoo.registry import get_model
+
+    mics = torch.tensor([[0.0, 0.0, 0.2], [3.0, 0.0, 0.7], [0.0, 3.0, 1.2], [3.0, 3.0, 1.7]], dtype=torch.float64)
+    settings = ({}, {"fit_steps": 30}, {"fit_steps": 10})
+    default, explicit, capped = (get_model("srp_phat", **kwargs) for kwargs in settings)
+    assert default.threshold_key(mics) == explicit.threshold_key(mics) != capped.threshold_key(mics)
+    with pytest.raises(ValueError, match="fit_steps"):
+        get_model("srp_phat", fit_steps=0)
