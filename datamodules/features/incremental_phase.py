@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from datamodules.errors import ConfigError
-from datamodules.features.phase import GccPhat, PhaseRecipe
+from datamodules.features.phase import GccPhat, PhaseRecipe, fold_mean, without_mean
 
 
 class IncrementalPhase:
@@ -87,20 +87,31 @@ class IncrementalPhase:
 
     # ------------------------------------------------------------------------------ frames
 
-    def _cross(self, starts: list[int]) -> list[torch.Tensor | None]:
-        """Cross-spectra of the frames starting at ``starts`` (from the store, or computed together);
-        None for a frame holding non-finite samples."""
+    def _cross(self, starts: list[int]) -> torch.Tensor | None:
+        """Cross-spectra (pairs x frames x bins) of the frames starting at ``starts`` (from the store, or
+        computed together); None when one of them holds non-finite samples."""
         missing = [s for s in dict.fromkeys(starts) if s not in self._store]
+        computed = None
         if missing:
-            frames = np.stack([self._samples(s, s + self.frame) for s in missing], axis=1)  # C x M x frame
+            if missing[-1] - missing[0] == (len(missing) - 1) * self.frame:  # back to back: a view, no copy
+                frames = self._samples(missing[0], missing[-1] + self.frame).reshape(self.channels, len(missing), -1)
+            else:
+                frames = np.stack([self._samples(s, s + self.frame) for s in missing], axis=1)  # C x M x frame
             finite = np.isfinite(frames).all(axis=(0, 2))
+            if not finite.all():
+                frames = np.nan_to_num(frames)
             with torch.no_grad():
-                cross = self.gcc.cross_spectra(torch.from_numpy(np.nan_to_num(frames)))  # pairs x M x bins
+                computed = self.gcc.cross_spectra(torch.from_numpy(frames))  # pairs x M x bins
             for m, s in enumerate(missing):
-                self._store[s] = cross[:, m] if finite[m] else None
+                self._store[s] = computed[:, m] if finite[m] else None
             self.computed += len(missing)
         self.used += len(starts)
-        return [self._store[s] for s in starts]
+        if computed is not None and missing == starts and all(self._store[s] is not None for s in starts):
+            return computed  # all new, in order: no second copy
+        cross = [self._store[s] for s in starts]
+        if any(c is None for c in cross):
+            return None
+        return torch.stack(cross, dim=1)  # type: ignore[arg-type]
 
     def _fold(self, window_start: int) -> None:
         """Fold every whole grid frame that ends at or before ``window_start`` into the long-term mean."""
@@ -110,12 +121,13 @@ class IncrementalPhase:
             self.next_frame += self.frame
         if not starts:
             return
-        for cross in self._cross(starts):
+        for start in starts:
+            cross = self._cross([start])
             if cross is None:
                 continue
             self.folded += 1
             weight = max(1.0 / self.folded, 1.0 - self.decay)
-            self.mean = cross if self.mean is None else (1 - weight) * self.mean + weight * cross
+            self.mean = fold_mean(self.mean, cross[:, 0], weight)
         self._prune(min(window_start, self.end - self.window))
 
     def _prune(self, before: int) -> None:
@@ -138,12 +150,9 @@ class IncrementalPhase:
             raise ValueError(f"a window needs {self.window} samples; {self.end} received")
         start = self.end - self.window
         cross = self._cross([start + j * self.frame for j in range(self.recipe.frames)])
-        if any(c is None for c in cross):
+        if cross is None:
             raise ValueError("the window holds NaN or infinite samples")
-        stacked = torch.stack(cross, dim=1)  # type: ignore[arg-type]
         with torch.no_grad():
-            if self.recipe.suppress_static and self.mean is not None:
-                stacked = stacked - self.mean[:, None, :]
-            out = self.gcc.correlate(stacked)
+            out = self.gcc.correlate(without_mean(cross, self.mean if self.recipe.suppress_static else None))
         self._prune(start)
         return out

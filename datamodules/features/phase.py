@@ -100,6 +100,25 @@ def pair_indices(channels: int) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.tensor([i for i, _ in pairs]), torch.tensor([j for _, j in pairs])
 
 
+#: values up to which :class:`GccPhat` keeps its FFTs' zero-padded inputs for the next call (at most 32 MB)
+SPECTRUM_REUSE = 1 << 22
+
+
+def _zeros_kept(kept: dict[tuple[int, ...], torch.Tensor], shape: tuple[int, ...], dtype: torch.dtype
+                ) -> torch.Tensor:
+    """The zero tensor of ``shape`` in ``kept`` (callers overwrite only its parts that they need nonzero), else
+    a new one, kept there when it holds at most :data:`SPECTRUM_REUSE` values (a stream has two or three
+    shapes: its windows' and its single frames')."""
+    if shape in kept:
+        return kept[shape]
+    tensor = torch.zeros(shape, dtype=dtype)
+    if tensor.numel() <= SPECTRUM_REUSE:
+        if len(kept) >= 4:
+            kept.clear()
+        kept[shape] = tensor
+    return tensor
+
+
 class GccPhat:
     """The phase recipe at one sample rate: frames -> cross-spectra -> PHAT -> correlation at the lags."""
 
@@ -112,7 +131,7 @@ class GccPhat:
         if half >= self.n_out // 2:
             raise ValueError(f"phase recipe {recipe.name!r}: max_delay {recipe.max_delay} s does not fit a "
                              f"{recipe.frame_seconds} s frame")
-        self.lag_index = torch.arange(-half, half + 1) % self.n_out
+        self.half = half  #: lags each side of zero: the columns are -half .. +half
         freqs = np.fft.rfftfreq(self.n_fft, 1.0 / sample_rate)
         keep = (freqs >= recipe.f_min) & (freqs <= min(recipe.f_max, recipe.lag_rate / 2))
         self.bins = torch.from_numpy(np.flatnonzero(keep))
@@ -122,25 +141,42 @@ class GccPhat:
         self.scale = self.n_out / (2.0 * max(int(keep.sum()), 1))
         self.first, self.second = pair_indices(channels)
         self.window = torch.hann_window(self.frame, periodic=False, dtype=torch.float32)
+        #: the last zero-padded frames handed to the FFT and full spectra handed to the inverse FFT (both zero
+        #: where no call writes: the padding, and outside the band), kept for the next call of the same shape
+        self._pad: dict[tuple[int, ...], torch.Tensor] = {}
+        self._full: dict[tuple[int, ...], torch.Tensor] = {}
+
+    def _spectrum(self, shape: tuple[int, ...]) -> torch.Tensor:
+        """A complex64 tensor of ``shape``, zero outside the band (which its users overwrite)."""
+        return _zeros_kept(self._full, shape, torch.complex64)
+
+    def _padded(self, frames: tuple[int, ...]) -> torch.Tensor:
+        """A float32 tensor of frames x ``n_fft`` samples whose second half (the zero padding) is zero."""
+        return _zeros_kept(self._pad, (*frames, self.n_fft), torch.float32)
 
     def cross_spectra(self, frames: torch.Tensor) -> torch.Tensor:
-        """C x F x frame samples -> pairs x F x band bins (complex128).
+        """C x F x frame samples -> pairs x F x band bins (complex64).
 
-        The FFTs run in single precision, as the samples come (float32); the cross-spectra are kept in
-        double precision, where the static mean subtracts a long average from them (the features' error
-        from this stays near 1e-6, a thousandth of the float16 feature cache's resolution)."""
-        spectra = torch.fft.rfft(frames.to(torch.float32) * self.window, n=self.n_fft)[..., self.band]
-        return (spectra[self.first] * spectra[self.second].conj()).to(torch.complex128)
+        Single precision throughout, as the samples come (float32). A static mean subtracted from them
+        is kept in double precision (it averages thousands of frames) and subtracted in single: the
+        features' error from this stays near 1e-6, a thousandth of the float16 feature cache's resolution."""
+        padded = self._padded(frames.shape[:-1])
+        torch.mul(frames, self.window, out=padded[..., :self.frame])  # its second half stays zero
+        spectra = torch.fft.rfft(padded)[..., self.band]
+        return spectra.index_select(0, self.first) * spectra.index_select(0, self.second).conj()
 
     def correlate(self, cross: torch.Tensor) -> torch.Tensor:
         """PHAT-weighted cross-spectra (pairs x F x band bins) -> pairs x F x lags (float32; the unit-magnitude
         PHAT spectra are transformed back in single precision)."""
-        single = cross.to(torch.complex64)  # after any mean was subtracted in double precision
-        phat = single / single.abs().clamp_min(1e-30)
-        full = torch.zeros((*cross.shape[:-1], self.n_out // 2 + 1), dtype=phat.dtype)
-        full[..., self.band] = phat
-        correlation = torch.fft.irfft(full, n=self.n_out)[..., self.lag_index]
-        return correlation * self.scale
+        single = np.ascontiguousarray(cross.to(torch.complex64).numpy())
+        magnitude = np.abs(single)  # numpy's complex magnitude: several times faster than torch's
+        np.reciprocal(np.maximum(magnitude, np.float32(1e-30), out=magnitude), out=magnitude)
+        full = self._spectrum((*cross.shape[:-1], self.n_out // 2 + 1))
+        np.multiply(single, magnitude, out=full.numpy()[..., self.band])
+        correlation = torch.fft.irfft(full, n=self.n_out)
+        # the lags -half .. -1 sit at the end of the transform, 0 .. half at its start
+        lags = torch.cat([correlation[..., self.n_out - self.half:], correlation[..., :self.half + 1]], dim=-1)
+        return lags * self.scale
 
 
 def split_frames(samples: np.ndarray, frame: int, frames: int) -> torch.Tensor:
@@ -162,6 +198,18 @@ def phase_features(samples: np.ndarray, sample_rate: float, recipe: PhaseRecipe)
     gcc = _gcc_phat(recipe, float(sample_rate), samples.shape[0])
     with torch.no_grad():
         return gcc.correlate(gcc.cross_spectra(split_frames(samples, gcc.frame, recipe.frames)))
+
+
+def fold_mean(mean: torch.Tensor | None, cross: torch.Tensor, weight: float) -> torch.Tensor:
+    """The static long-term mean (pairs x bins, complex128: it averages thousands of frames) after folding in
+    one frame's cross-spectra (pairs x bins) with ``weight``; the frame itself when there is no mean yet."""
+    cross = cross.to(torch.complex128)
+    return cross if mean is None else (1 - weight) * mean + weight * cross
+
+
+def without_mean(cross: torch.Tensor, mean: torch.Tensor | None) -> torch.Tensor:
+    """Cross-spectra (pairs x F x bins, complex64) less the static mean (pairs x bins), in single precision."""
+    return cross if mean is None else cross - mean.to(torch.complex64)[:, None, :]
 
 
 @lru_cache(maxsize=8)
@@ -201,8 +249,7 @@ class PhaseWindows:
                 if i <= self.last:
                     raise ValueError("static suppression needs the windows in time order")
                 self._fold_past(self.audio.sample_index(t_end) - self.gcc.frame * self.recipe.frames)
-                if self.mean is not None:
-                    cross = cross - self.mean[:, None, :]
+                cross = without_mean(cross, self.mean)
             self.last = i
             return self.gcc.correlate(cross).numpy()
 
@@ -224,5 +271,5 @@ class PhaseWindows:
             cross = self.gcc.cross_spectra(torch.from_numpy(samples)[:, None, :])[:, 0]
             self.folded += 1
             weight = max(1.0 / self.folded, 1.0 - self.decay)
-            self.mean = cross if self.mean is None else (1 - weight) * self.mean + weight * cross
+            self.mean = fold_mean(self.mean, cross, weight)
             self.next_frame += frame

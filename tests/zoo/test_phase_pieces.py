@@ -1,4 +1,5 @@
-"""The phase nets' pieces on their own: steering terms, the white-noise null and the detection gate."""
+"""The phase nets' pieces on their own: steering terms, pooled correlations, the cube table, the white-noise null
+and the detection gate."""
 
 from __future__ import annotations
 
@@ -8,9 +9,10 @@ import pytest
 import torch
 
 from datamodules.features import mic_pairs, phase_recipe
+from zoo.nets.phase.cubes import CubeColumns
 from zoo.nets.phase.gate import DetectionGate
 from zoo.nets.phase.null import white_noise_correlations
-from zoo.nets.phase.steering import Steering, cube_grid, search_region, with_bounds
+from zoo.nets.phase.steering import POOL_WIDTHS, Steering, cube_grid, pooled, pooled_layouts, search_region, with_bounds
 
 RECIPE = phase_recipe("gcc_phat")
 
@@ -64,3 +66,45 @@ def test_the_gate_confirms_holds_then_falls_back_and_restarts_a_sequence_that_go
     assert alone[2].tolist() == centre.tolist()
     with pytest.raises(ValueError, match="fallback"):
         DetectionGate(fallback="last")
+
+
+def test_cube_table_gives_the_columns_computed_afresh_and_starts_afresh_when_full():
+    mics = torch.tensor([[0.0, 0.0, 0.2], [3.0, 0.0, 0.7], [0.0, 3.0, 1.2], [3.0, 3.0, 1.7]], dtype=torch.float64)
+    steering = Steering(phase_recipe("gcc_phat_2s_static"))
+    table = CubeColumns(steering, mics, capacity=3)
+    offsets = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)
+    parents = torch.tensor([[2.0, 6.0, 4.0], [1.5, 2.0, 1.0], [5.5, 3.0, 1.0]])  # the second inside the array
+    sides = torch.tensor([[0.5], [0.25], [0.125]]).expand(-1, 27)
+    centres = parents[:, None, :] + offsets * sides[..., None]
+    fresh = steering.columns(centres.reshape(-1, 3), mics, sides.reshape(-1, 1)).reshape(3, 27, -1)
+    width = table.width
+    assert bool((fresh[1] < 0).all())  # its terms read nothing (-1): the table stores the zero column's index
+    expected = fresh.remainder(width)
+    names = torch.tensor([7, 11, 7])  # the third is parent 7 again: read from the table, not from its cubes
+    out = table.children(1, names, centres, sides)
+    assert torch.equal(out[:2], expected[:2]) and torch.equal(out[2], expected[0])
+    assert (table.misses, table.hits) == (2, 1)
+    again = table.children(1, names[:2], torch.full_like(centres[:2], float("nan")), sides[:2])  # not read
+    assert torch.equal(again, expected[:2]) and table.hits == 3
+    table.children(2, torch.tensor([7, 8]), centres[1:], sides[1:])  # a level's names are its own: 3 + 2 > 3
+    assert len(table.slots) == 2 and (2, 7) in table.slots and (1, 7) not in table.slots
+
+
+def test_pooled_layouts_equal_max_pools_and_each_other():
+    corr = torch.randn(3, 6, 141)
+    rows, columns = pooled_layouts(corr)
+    reference = [corr] + [torch.nn.functional.max_pool1d(corr, 2 * w + 1, stride=1, padding=w) for w in POOL_WIDTHS[1:]]
+    expected = torch.cat([torch.stack(reference, dim=1).reshape(3, -1), torch.zeros(3, 1)], dim=1)
+    assert torch.equal(rows, expected) and torch.equal(columns, expected.T) and columns.is_contiguous()
+    assert torch.equal(pooled(corr), expected)
+
+
+def test_a_capped_delay_fit_has_its_own_threshold_key_and_the_default_keeps_the_old_one():
+    from zoo.registry import get_model
+
+    mics = torch.tensor([[0.0, 0.0, 0.2], [3.0, 0.0, 0.7], [0.0, 3.0, 1.2], [3.0, 3.0, 1.7]], dtype=torch.float64)
+    settings = ({}, {"fit_steps": 30}, {"fit_steps": 10})
+    default, explicit, capped = (get_model("srp_phat", **kwargs) for kwargs in settings)
+    assert default.threshold_key(mics) == explicit.threshold_key(mics) != capped.threshold_key(mics)
+    with pytest.raises(ValueError, match="fit_steps"):
+        get_model("srp_phat", fit_steps=0)

@@ -4,15 +4,25 @@
 windows of correlations: a coarse grid of cells (split near the array) scored on max-pooled
 correlations, levels of 27-cube refinement, then per frame a Gauss-Newton fit of each candidate to the
 frame's pair delays and a hill climb on its exact response. It owns the search region (clamping every
-step to it) and caches each geometry's coarse grid.
+step to it) and caches each geometry's coarse grid, its sparse scoring matrix and its table of refinement
+cubes' columns (:mod:`zoo.nets.phase.cubes`), none of which depends on the audio.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from datamodules.features import mic_pairs, pair_indices
-from zoo.nets.phase.steering import POOL_WIDTHS, Steering, cube_grid, gather, pooled, sparse_warnings_ignored
+from zoo.nets.phase.cubes import CHILDREN, CubeColumns, child_ids
+from zoo.nets.phase.steering import (
+    POOL_WIDTHS,
+    Steering,
+    cube_grid,
+    gather,
+    pooled_layouts,
+    sparse_warnings_ignored,
+)
 
 #: coarse cells are split until they span at most this many lags (half-range) for every pair
 MAX_COARSE_WIDTH = 32.0
@@ -22,6 +32,8 @@ WINDOW_LEVELS = 2
 FIT_SEARCH, FIT_STEPS, FIT_DAMPING, FIT_MAX_STEP = 8, 30, 1e-4, 5.0
 #: the delay fit stops once no point moves farther than this in a step (m: 1/60 of the finest grid step)
 FIT_TOLERANCE = 1e-3
+#: the 27 cubes around a point (x slowest, z fastest; the centre included), in steps
+OFFSETS = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)
 
 
 def best_candidates(points: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -37,15 +49,14 @@ class CandidateSearch:
 
     def __init__(self, steering: Steering, region: torch.Tensor, coarse_step: float = 1.0, fine_step: float = 0.0625,
                  candidates: int = 32, frame_candidates: int = 4, search_groups: int = 1, refine_levels: int = 1,
-                 fit_delays: bool = True):
+                 fit_delays: bool = True, fit_steps: int = FIT_STEPS):
         """Args:
             steering: the geometry the responses are read with.
             region: the searched region (3 x 2, m, rig frame); :meth:`set_region` changes it.
-            coarse_step, fine_step, candidates, frame_candidates, search_groups, refine_levels, fit_delays:
+            coarse_step, fine_step, candidates, frame_candidates, search_groups, refine_levels, fit_delays, fit_steps:
                 as in :class:`zoo.nets.phase.srp_phat.SRPPhat`.
         """
         self.steering = steering
-        self.region = region
         self.coarse_step, self.fine_step = float(coarse_step), float(fine_step)
         self.frame_candidates, self.search_groups = int(frame_candidates), int(search_groups)
         if self.search_groups < 1:
@@ -53,18 +64,32 @@ class CandidateSearch:
         self.candidates = int(candidates)
         self.refine_levels = int(refine_levels)
         self.uses_delay_fit = bool(fit_delays)
+        self.fit_steps = int(fit_steps)
+        if self.fit_steps < 1:
+            raise ValueError(f"srp_phat: fit_steps must be >= 1, got {fit_steps}")
         self._coarse: dict[bytes, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
         self._coarse_matrices: dict[bytes, torch.Tensor] = {}
+        self._cubes: dict[bytes, CubeColumns] = {}  #: per geometry, the refinement cubes' columns
+        self.set_region(region)
 
     def set_region(self, region: torch.Tensor) -> None:
         """Search ``region`` (3 x 2) from now on; the coarse grids are rebuilt."""
         self.region = region
+        self._low, self._high = region[:, 0].float(), region[:, 1].float()
         self._coarse.clear()
         self._coarse_matrices.clear()
+        self._cubes.clear()
 
     def clamp(self, points: torch.Tensor) -> torch.Tensor:
         """Points (... x 3) moved to the nearest point of the region."""
-        return torch.maximum(torch.minimum(points, self.region[:, 1].float()), self.region[:, 0].float())
+        return torch.maximum(torch.minimum(points, self._high), self._low)
+
+    def cubes(self, mics: torch.Tensor) -> CubeColumns:
+        """The geometry's table of refinement cubes' columns (:class:`~zoo.nets.phase.cubes.CubeColumns`)."""
+        key = mics.numpy().tobytes()
+        if key not in self._cubes:
+            self._cubes[key] = CubeColumns(self.steering, mics)
+        return self._cubes[key]
 
     def coarse_grid(self, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The coarse cells (centres G x 3 and sides G) and their columns in the flattened pooled
@@ -106,38 +131,54 @@ class CandidateSearch:
             size = (grid.shape[0], len(POOL_WIDTHS) * pairs * self.steering.recipe.num_lags() + 1)
             with sparse_warnings_ignored():
                 matrix = torch.sparse_coo_tensor(torch.stack([rows[used], columns[used]]), values[used].float(), size)
-                self._coarse_matrices[key] = matrix.coalesce().to_sparse_csr()
+                matrix = matrix.coalesce().to_sparse_csr()
+                # 32-bit indices: the sparse product otherwise converts them at every call
+                self._coarse_matrices[key] = torch.sparse_csr_tensor(
+                    matrix.crow_indices().int(), matrix.col_indices().int(), matrix.values(), size)
         return self._coarse_matrices[key]
 
-    def refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor,
-               keep: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def refine(self, flat: torch.Tensor, points: torch.Tensor, steps: torch.Tensor, mics: torch.Tensor, keep: int,
+               names: torch.Tensor | None = None, level: int = 0
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """One level: the 27 cubes of half the step around each point (N x k x 3), scored on the pooled
-        correlations ``flat``; the ``keep`` best (points, steps, scores)."""
-        n = points.shape[0]
-        offsets = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)  # 27 x 3
+        correlations ``flat`` (N x columns); the ``keep`` best (points, steps, scores, names). With the
+        points' ``names`` (N x k, :func:`~zoo.nets.phase.cubes.child_ids`) and their refinement ``level``,
+        the cubes' columns come from the geometry's :meth:`cubes` table."""
+        n, k = points.shape[:2]
         steps = steps / 2
-        children = self.clamp((points[:, :, None, :] + offsets * steps[..., None, None]).reshape(n, -1, 3))
-        child_steps = steps[:, :, None].expand(-1, -1, offsets.shape[0]).reshape(n, -1)
+        children = self.clamp(points[:, :, None, :] + OFFSETS * steps[..., None, None])  # N x k x 27 x 3
+        child_steps = steps[:, :, None].expand(-1, -1, CHILDREN)
+        if names is None:
+            columns = self.steering.columns(children.reshape(n, -1, 3), mics, child_steps.reshape(n, -1, 1))
+            columns = columns.remainder_(flat.shape[1])  # -1 (reads nothing): the zero column's index
+        else:
+            columns = self.cubes(mics).children(level, names.reshape(-1), children.reshape(n * k, CHILDREN, 3),
+                                                child_steps.reshape(n * k, CHILDREN))
         weights = self.steering.terms(mics.shape[0]).weights
-        scores = gather(flat, self.steering.columns(children, mics, child_steps[..., None]), weights)
-        best = scores.topk(min(keep, children.shape[1]), dim=1)
-        return (torch.gather(children, 1, best.indices[..., None].expand(-1, -1, 3)),
-                torch.gather(child_steps, 1, best.indices), best.values)
+        scores = gather(flat, columns.reshape(n, k * CHILDREN, -1), weights, wrapped=True)
+        best = scores.topk(min(keep, k * CHILDREN), dim=1)
+        chosen = (torch.gather(children.reshape(n, -1, 3), 1, best.indices[..., None].expand(-1, -1, 3)),
+                  torch.gather(child_steps.reshape(n, -1), 1, best.indices), best.values)
+        if names is None:
+            return *chosen, None
+        parents = torch.gather(names, 1, best.indices // CHILDREN)
+        return *chosen, child_ids(parents, best.indices % CHILDREN)
 
     def refine_exact(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor
                      ) -> tuple[torch.Tensor, torch.Tensor]:
         """Hill-climb each point (N x K x 3) on a frame's exact response: at every level the best of the 27
         points one step around it, the step halving from ``2 ** (refine_levels - 1) * fine_step`` down to
         ``fine_step``. Returns the points and their responses (N x K)."""
-        offsets = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)  # 27 x 3 (the centre included)
         n, k = points.shape[:2]
+        if self.refine_levels < 1:
+            return points, self.steering.response(frames, points, mics)
         for level in reversed(range(self.refine_levels)):
             step = self.fine_step * 2 ** level
-            children = self.clamp(points[:, :, None, :] + offsets * step)  # N x K x 27 x 3
+            children = self.clamp(points[:, :, None, :] + OFFSETS * step)  # N x K x 27 x 3
             scores = self.steering.response(frames, children.reshape(n, -1, 3), mics).reshape(n, k, -1)
-            best = scores.argmax(dim=-1)
-            points = torch.gather(children, 2, best[..., None, None].expand(-1, -1, 1, 3))[:, :, 0]
-        return points, self.steering.response(frames, points, mics)
+            best = scores.argmax(dim=-1, keepdim=True)
+            points = torch.gather(children, 2, best[..., None].expand(-1, -1, 1, 3))[:, :, 0]
+        return points, torch.gather(scores, 2, best)[..., 0]  # the last level's: no second reading
 
     def fit_delays(self, frames: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
         """Move each candidate (N x K x 3) to the point whose pair delays best match the frame's.
@@ -149,44 +190,63 @@ class CandidateSearch:
         which a grid search cannot resolve without a grid finer than its cost allows.
         """
         n, k = points.shape[:2]
-        lags = frames.shape[-1]
+        pairs, lags = frames.shape[1:]
         position = self.steering.lag_positions(points, mics, direct_only=True)  # N x K x P
         window = torch.arange(-FIT_SEARCH, FIT_SEARCH + 1)
         index = (position.round().long()[..., None] + window).clamp(1, lags - 2)  # N x K x P x W
-        batch = torch.arange(n)[:, None, None, None]
-        pairs = torch.arange(frames.shape[1])[None, None, :, None]
-        values = frames[batch, pairs, index]
-        peak = values.argmax(dim=-1, keepdim=True)
-        centre = torch.gather(index, -1, peak)[..., 0]
-        y0, y1, y2 = (frames[batch[..., 0], pairs[..., 0], centre + d] for d in (-1, 0, 1))
+        # every lag as an index into the flattened correlations (one gather, not three index tensors)
+        base = ((torch.arange(n) * pairs)[:, None, None] + torch.arange(pairs)) * lags  # N x 1 x P
+        flat = frames.reshape(-1)
+        peak = flat.take(index + base[..., None]).argmax(dim=-1, keepdim=True)
+        centre = torch.gather(index, -1, peak)[..., 0] + base
+        y0, y1, y2 = (flat.take(centre + d) for d in (-1, 0, 1))
         curvature = y0 - 2 * y1 + y2
         shift = torch.where(curvature < 0, 0.5 * (y0 - y2) / curvature.clamp(max=-1e-9), torch.zeros_like(y1))
-        measured = centre.to(frames.dtype) + shift.clamp(-0.5, 0.5)
+        measured = (centre - base).to(frames.dtype) + shift.clamp(-0.5, 0.5)
         weight = y1.clamp_min(0.0) + 1e-3
-        first, second = pair_indices(mics.shape[0])
-        scale = self.steering.recipe.lag_rate / self.steering.speed_of_sound
-        half = (self.steering.recipe.num_lags() - 1) // 2
-        m = mics.to(points.dtype)
-        identity = torch.eye(3)
-        for _ in range(FIT_STEPS):
-            direction = points[..., None, :] - m  # N x K x C x 3
-            distance = torch.linalg.vector_norm(direction, dim=-1, keepdim=True).clamp_min(1e-6)
-            unit = direction / distance
-            jacobian = (unit.index_select(-2, first) - unit.index_select(-2, second)) * scale  # N x K x P x 3
-            # the direct terms' lag columns (pair_geometry's, from the distances already at hand)
-            ranges = distance[..., 0]
-            residual = (ranges.index_select(-1, first) - ranges.index_select(-1, second)) * scale + half - measured
-            jw = jacobian * weight[..., None]
-            normal = jw.transpose(-1, -2) @ jacobian
-            damping = FIT_DAMPING * normal.diagonal(dim1=-2, dim2=-1).mean(dim=-1)[..., None, None]
-            normal = normal + damping * identity
-            step = torch.linalg.solve(normal, -(jw.transpose(-1, -2) @ residual[..., None]))[..., 0]
-            moved = self.clamp(points + step.clamp(-FIT_MAX_STEP, FIT_MAX_STEP))
-            converged = float((moved - points).abs().max()) < FIT_TOLERANCE
+        return torch.from_numpy(self._gauss_newton(points.numpy(), measured.numpy(), weight.numpy(), mics))
+
+    def _gauss_newton(self, points: np.ndarray, measured: np.ndarray, weight: np.ndarray, mics: torch.Tensor
+                      ) -> np.ndarray:
+        """The damped Gauss-Newton steps of :meth:`fit_delays`: points (N x K x 3) fitted to the measured
+        direct lag columns (N x K x pairs) with weights (N x K x pairs), float32. In numpy: its operations
+        on these few hundred numbers cost a fraction of torch's."""
+        shape = points.shape
+        first, second = (index.numpy() for index in pair_indices(mics.shape[0]))
+        m = mics.numpy().astype(points.dtype)
+        scale = np.float32(self.steering.recipe.lag_rate / self.steering.speed_of_sound)
+        half = np.float32((self.steering.recipe.num_lags() - 1) // 2)
+        low, high = self._low.numpy(), self._high.numpy()
+        damping, largest = np.float32(FIT_DAMPING / 3), np.float32(FIT_MAX_STEP)
+        points = points.reshape(-1, 3)
+        measured = measured.reshape(points.shape[0], -1)
+        weight = weight.reshape(points.shape[0], -1, 1)
+        unit_range = np.empty((points.shape[0], m.shape[0], 4), dtype=np.float32)  # unit vector, distance
+        diagonal = np.arange(3)
+        for _ in range(self.fit_steps):
+            direction = points[:, None, :] - m  # M x C x 3
+            distance = np.sqrt(np.add.reduce(direction * direction, axis=-1))
+            np.maximum(distance, np.float32(1e-6), out=distance)
+            np.divide(direction, distance[..., None], out=unit_range[..., :3])
+            unit_range[..., 3] = distance
+            # per pair: the Jacobian of its lag column (3) and its residual, from the differences of the two
+            jacobian = unit_range[:, first] - unit_range[:, second]  # M x P x 4
+            jacobian *= scale
+            residual = jacobian[..., 3]
+            residual += half
+            residual -= measured
+            normal = (jacobian[..., :3] * weight).transpose(0, 2, 1) @ jacobian  # M x 3 x 4: J'WJ | J'Wr
+            matrix = normal[..., :3]
+            trace = np.add.reduce(matrix[:, diagonal, diagonal], axis=-1, keepdims=True)
+            matrix[:, diagonal, diagonal] += trace * damping
+            step = np.linalg.solve(matrix, -normal[..., 3:])[..., 0]
+            # np.minimum / np.maximum: np.clip's same values behind several layers of Python
+            moved = np.minimum(np.maximum(points + np.minimum(np.maximum(step, -largest), largest), low), high)
+            converged = float(np.maximum.reduce(np.abs(moved - points), axis=None)) < FIT_TOLERANCE
             points = moved
             if converged:
                 break
-        return points
+        return points.reshape(shape)
 
     def fitted_candidates(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Every frame's ``frame_candidates`` fitted points (B x F x K x 3) and their exact responses
@@ -198,18 +258,19 @@ class CandidateSearch:
         on its exact response.
         """
         b, f, p, lags = correlation.shape
-        corr = correlation.to(torch.float32)
+        corr = correlation.to(torch.float32).contiguous()
         groups = torch.tensor_split(torch.arange(f), min(self.search_groups, f))
-        mean = torch.stack([corr[:, rows].mean(dim=1) for rows in groups], dim=1).reshape(-1, p, lags)
+        mean = torch.stack([corr[:, int(rows[0]):int(rows[-1]) + 1].mean(dim=1) for rows in groups], dim=1)
         grid, sides, _ = self.coarse_grid(mics)
         k = min(self.candidates, grid.shape[0])
-        flat = pooled(mean)
+        flat, flat_columns = pooled_layouts(mean.reshape(-1, p, lags))
         with sparse_warnings_ignored():
-            scores = (self.coarse_matrix(mics) @ flat.T).T  # B x G: every cell's pooled response at once
-        best = scores.topk(k, dim=1)  # B x G -> B x k
-        points, steps = grid[best.indices], sides[best.indices]
-        for _ in range(WINDOW_LEVELS):
-            points, steps, _ = self.refine(flat, points, steps, mics, k)
+            scores = self.coarse_matrix(mics) @ flat_columns  # G x B: every cell's pooled response at once
+        best = scores.topk(k, dim=0)  # G x B -> k x B
+        names = best.indices.T  # B x k: the coarse cells, by index (the names of their cubes' parents)
+        points, steps = grid[names], sides[names]
+        for level in range(WINDOW_LEVELS):
+            points, steps, _, names = self.refine(flat, points, steps, mics, k, names, level)
         points = points[:, : self.frame_candidates].reshape(b, len(groups), -1, 3)
         # per frame: fit its group's candidates to the pair delays measured near their own, then refine
         # them on the exact (multipath) response

@@ -48,7 +48,7 @@ from datamodules.features import phase_recipe
 from zoo.nets.base import TrajectoryNet
 from zoo.nets.phase.gate import DetectionGate
 from zoo.nets.phase.null import white_noise_correlations
-from zoo.nets.phase.search import CandidateSearch
+from zoo.nets.phase.search import FIT_STEPS, CandidateSearch
 from zoo.nets.phase.steering import SPEED_OF_SOUND, Steering, default_mics, geometry_groups, search_region, with_bounds
 from zoo.registry import register_model
 
@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 #: null windows searched at once while setting a threshold
 NULL_BATCH = 64
 #: bumped whenever the search changes what it finds, so stored thresholds of older code are not reused
-THRESHOLD_VERSION = 2
+THRESHOLD_VERSION = 3
 
 
 @register_model("srp_phat")
@@ -95,6 +95,7 @@ class SRPPhat(TrajectoryNet):
         reflection_weight: float = 1.0,
         refine_levels: int = 1,
         fit_delays: bool = True,
+        fit_steps: int = FIT_STEPS,
         min_range: float = 4.0,
         fallback: str = "mean",
         input_recipes: dict[str, str] | None = None,
@@ -127,6 +128,8 @@ class SRPPhat(TrajectoryNet):
             refine_levels: per frame, levels of 27-point refinement (from ``2 ** (levels - 1) * fine_step``
                 down to ``fine_step``) on the exact multipath response after the delay fit.
             fit_delays: fit each frame's candidates to its direct pair delays (Gauss-Newton) first.
+            fit_steps: Gauss-Newton steps at most (the fit stops earlier once no candidate moves 1 mm; fewer
+                than the default 30 cost accuracy: see README, "The phase localisers live").
             fallback: after the hold, ``mean`` (of the sequence's detections so far) or ``centre`` (of
                 the search region: the flight region's prior, unbiased by false or near detections).
             min_range: points closer than this to the microphones' centre (m) score 0: the drone keeps
@@ -138,7 +141,7 @@ class SRPPhat(TrajectoryNet):
         self.steering = Steering(self.recipe, speed_of_sound, ground_height, reflection_weight, min_range)
         self.search = CandidateSearch(self.steering, search_region(region_min, region_max, self.model_name),
                                       coarse_step, fine_step, candidates, frame_candidates, search_groups,
-                                      refine_levels, fit_delays)
+                                      refine_levels, fit_delays, fit_steps)
         self.false_alarm, self.null_windows = float(false_alarm), int(null_windows)
         self.gate = DetectionGate(hold_seconds, confirm_seconds, confirm_distance, fallback)
         self._thresholds: dict[bytes, float] = {}
@@ -190,6 +193,7 @@ class SRPPhat(TrajectoryNet):
                     self.steering.reflection_weight, self.steering.min_range, self.region.tolist(), search.coarse_step,
                     search.fine_step, search.candidates, search.frame_candidates, search.search_groups,
                     search.refine_levels, search.uses_delay_fit, self.false_alarm, self.null_windows,
+                    *((search.fit_steps,) if search.fit_steps != FIT_STEPS else ()),
                     mics.double().numpy().tobytes().hex())
         return hashlib.sha256(repr(settings).encode()).hexdigest()[:24]
 

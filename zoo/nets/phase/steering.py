@@ -16,10 +16,10 @@ import math
 import warnings
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from functools import lru_cache
 from typing import NamedTuple
 
 import torch
-import torch.nn.functional as F
 
 from datamodules.features import PhaseRecipe, mic_pairs, pair_indices
 from datamodules.simulate.microphones import mic_geometry
@@ -105,22 +105,76 @@ def geometry_groups(phase: torch.Tensor, mics_batch: torch.Tensor | None, defaul
 # ------------------------------------------------------------------------------ pooled correlations
 
 
+def _pool_levels(corr: torch.Tensor) -> list[torch.Tensor]:
+    """N x pairs x lags max-pooled over +-w lags for each w of POOL_WIDTHS (each N x pairs x lags).
+
+    Each level is the maximum of the previous one at the two lags the widths' difference away (clamped to
+    the ends; and at its own lag where the two spans leave a gap), so a width of 64 costs what a width of 1
+    does; the values are exactly those of a max pool of width ``2 w + 1`` padded with -inf."""
+    lags = corr.shape[-1]
+    levels = [corr]
+    for i in range(1, len(POOL_WIDTHS)):
+        previous = levels[-1]
+        reach = POOL_WIDTHS[i] - POOL_WIDTHS[i - 1]  # the previous level's spans at +-reach leave no gap:
+        assert 0 < reach <= 2 * POOL_WIDTHS[i - 1] + 1, POOL_WIDTHS  # each width at most 3x the last plus 1
+        padded = torch.cat([previous[..., :1].expand(-1, -1, reach), previous,
+                            previous[..., -1:].expand(-1, -1, reach)], dim=-1)
+        level = torch.maximum(padded[..., :lags], padded[..., 2 * reach:])
+        levels.append(torch.maximum(level, previous) if reach > POOL_WIDTHS[i - 1] else level)  # else a gap
+    return levels
+
+
+def pooled_layouts(corr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """N x pairs x lags -> the correlations max-pooled at POOL_WIDTHS, flattened (level, pair, lag) with a zero
+    last, in both layouts: N x columns (:func:`pooled`, what :func:`gather` reads) and columns x N
+    (:func:`pooled_columns`, what the sparse steering matrices multiply)."""
+    n, pairs, lags = corr.shape
+    levels = torch.stack(_pool_levels(corr), dim=1)  # N x levels x pairs x lags
+    rows = torch.cat([levels.reshape(n, -1), torch.zeros(n, 1, dtype=corr.dtype)], dim=1)
+    columns = torch.zeros((rows.shape[1], n), dtype=corr.dtype)
+    columns[:-1].view(len(POOL_WIDTHS), pairs, lags, n).copy_(levels.permute(1, 2, 3, 0))
+    return rows, columns
+
+
 def pooled(corr: torch.Tensor) -> torch.Tensor:
     """N x pairs x lags -> N x (levels * pairs * lags + 1): max-pooled at POOL_WIDTHS, flattened, a zero last."""
-    levels = torch.stack([corr if w == 0 else F.max_pool1d(corr, 2 * w + 1, stride=1, padding=w)
-                          for w in POOL_WIDTHS], dim=1)
-    return torch.cat([levels.reshape(corr.shape[0], -1), torch.zeros(corr.shape[0], 1)], dim=1)
+    n = corr.shape[0]
+    return torch.cat([torch.stack(_pool_levels(corr), dim=1).reshape(n, -1), torch.zeros(n, 1)], dim=1)
 
 
-def gather(flat: torch.Tensor, columns: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+def pooled_columns(corr: torch.Tensor) -> torch.Tensor:
+    """:func:`pooled` transposed (columns x N, contiguous): the right-hand side of a sparse steering product."""
+    return pooled_layouts(corr)[1]
+
+
+def gather(flat: torch.Tensor, columns: torch.Tensor, weights: torch.Tensor, wrapped: bool = False) -> torch.Tensor:
     """Weighted mean over terms of ``flat`` (N x columns, a zero column last: :func:`pooled`) at ``columns``
-    (N x K x T or K x T, from :meth:`Steering.columns`)."""
-    rows = slice(None) if columns.dim() == 2 else torch.arange(flat.shape[0])[:, None, None]
-    values = flat[rows, columns]
+    (N x K x T or K x T, from :meth:`Steering.columns`; ``wrapped``: with the zero column as its index, not -1)."""
+    if columns.dim() == 2:
+        values = flat[:, columns]
+    else:
+        index = columns.reshape(flat.shape[0], -1)
+        if not wrapped:  # -1: the zero column, last
+            index = index.remainder(flat.shape[1])
+        values = torch.gather(flat, 1, index).reshape(columns.shape)
     return (values * (weights / weights.sum())).sum(dim=-1)
 
 
 # ------------------------------------------------------------------------------ steering
+
+
+@lru_cache(maxsize=4)
+def _block_pairs(blocks: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every (later, earlier) pair of term blocks, ordered by the later block: (1, 0), (2, 0), (2, 1), ..."""
+    pairs = [(t, e) for t in range(1, blocks) for e in range(t)]
+    return torch.tensor([t for t, _ in pairs]), torch.tensor([e for _, e in pairs])
+
+
+@lru_cache(maxsize=4)
+def _level_of_span(limit: int) -> torch.Tensor:
+    """For each whole number of lags 0 .. ``limit``, the first POOL_WIDTHS level that wide (the last beyond)."""
+    spans = torch.arange(limit + 1, dtype=torch.float64)
+    return torch.bucketize(spans, torch.tensor(POOL_WIDTHS, dtype=torch.float64)).clamp(max=len(POOL_WIDTHS) - 1)
 
 
 class Steering:
@@ -229,15 +283,22 @@ class Steering:
         """
         terms = position.shape[-1]
         pairs = len(mic_pairs(channels))
-        if terms == pairs:
+        blocks = terms // pairs
+        if blocks == 1:
             return torch.ones_like(position, dtype=torch.bool)
-        grouped = position.reshape(*position.shape[:-1], terms // pairs, pairs)
+        later, earlier = _block_pairs(blocks)
+        grouped = position.reshape(-1, blocks, pairs)
         width = self.recipe.lag_rate / self.recipe.f_max
-        keep = [torch.ones_like(grouped[..., 0, :], dtype=torch.bool)]
-        for t in range(1, grouped.shape[-2]):
-            apart = ((grouped[..., t:t + 1, :] - grouped[..., :t, :]).abs() > width).all(dim=-2)
-            keep.append(apart)
-        return torch.stack(keep, dim=-2).reshape(position.shape)
+        apart = (grouped.index_select(1, later) - grouped.index_select(1, earlier)).abs_() > width
+        keep = [torch.ones_like(grouped[:, 0], dtype=torch.bool)]
+        first = 0
+        for t in range(1, blocks):  # block t against blocks 0 .. t-1: rows first .. first + t - 1 of apart
+            kept = apart[:, first]
+            for row in range(first + 1, first + t):
+                kept = kept & apart[:, row]  # explicit: all() over a short middle axis is several times slower
+            keep.append(kept)
+            first += t
+        return torch.stack(keep, dim=1).reshape(position.shape)
 
     def lag_scale(self, step: float | torch.Tensor) -> float | torch.Tensor:
         """Lags spanned per unit gradient of path difference by a cube of side ``step`` (half-diagonal)."""
@@ -252,8 +313,8 @@ class Steering:
         lags = self.recipe.num_lags()
         position, gradient = self.pair_geometry(points, mics)
         width = gradient * self.lag_scale(step)
-        level = torch.bucketize(width.ceil(), torch.tensor(POOL_WIDTHS, dtype=width.dtype))
-        level = level.clamp(max=len(POOL_WIDTHS) - 1)
+        # the level of each whole number of lags from a table (a binary search per term is several times slower)
+        level = _level_of_span(POOL_WIDTHS[-1] + 1).take(width.ceil().clamp(max=POOL_WIDTHS[-1] + 1).long())
         index = position.round().long()
         outside = (index < 0) | (index >= lags) | ~self.distinct(position, mics.shape[0]) | self.near(points, mics)
         columns = (level * pairs + rows) * lags + index.clamp(0, lags - 1)
@@ -262,14 +323,15 @@ class Steering:
     def response(self, correlation: torch.Tensor, points: torch.Tensor, mics: torch.Tensor) -> torch.Tensor:
         """Steered response (N x K) of correlations (N x P x L) at ``points`` (N x K x 3): the weighted mean
         over terms, linearly interpolated between lags."""
-        lags = correlation.shape[-1]
+        n, rows, lags = correlation.shape
         terms = self.terms(mics.shape[0])
         position = self.lag_positions(points, mics)  # N x K x T
         low = position.floor().clamp(0, lags - 2)
         frac = (position - low).clamp(0, 1)
-        low = low.long()
-        batch = torch.arange(correlation.shape[0])[:, None, None]
-        a, b = correlation[batch, terms.rows, low], correlation[batch, terms.rows, low + 1]
+        # each term's lag as an index into the flattened correlations (one gather, not three index tensors)
+        index = low.long() + ((torch.arange(n) * rows)[:, None, None] + terms.rows) * lags
+        flat = correlation.reshape(-1)
+        a, b = flat.take(index), flat.take(index + 1)
         inside = (position >= 0) & (position <= lags - 1) & self.distinct(position, mics.shape[0])
         inside = inside & ~self.near(points, mics)
         values = torch.where(inside, a + frac * (b - a), torch.zeros((), dtype=a.dtype))
@@ -286,9 +348,9 @@ class Steering:
         key = (mics.numpy().tobytes(), points.numpy().tobytes(), float(step))
         if self._matrix_key != key:
             self._matrix_key, self._matrix = key, self.steering_matrix(points, mics, step)
-        flat = pooled(correlation.to(torch.float32))
+        flat = pooled_columns(correlation.to(torch.float32))
         with sparse_warnings_ignored():
-            values = (self._matrix @ flat.T).T  # N x 2G
+            values = (self._matrix @ flat).T  # N x 2G
         return values.reshape(-1, 2, points.shape[0])
 
     def steering_matrix(self, points: torch.Tensor, mics: torch.Tensor, step: float) -> torch.Tensor:
