@@ -53,9 +53,9 @@ class ClockCalibrationConfig:
     """Settings of :func:`estimate_clock_offsets` (defaults: the simulator's rooftop rig)."""
 
     frame_seconds: float = 4096 / 48000  #: the phase recipes' frame (85.3 ms)
-    hop_seconds: float = 0.25  #: one frame every this many seconds of the stretch
-    max_frames: int = 400  #: at most this many frames, spread evenly over the recording
-    min_frames: int = 20  #: fewer usable frames: refuse
+    block_frames: int = 12  #: consecutive frames averaged into one block (1.02 s: weak sources need it)
+    max_blocks: int = 240  #: at most this many blocks, spread evenly over the recording
+    min_blocks: int = 10  #: fewer usable blocks: refuse
     f_min: float = 300.0  #: band of both measurements (Hz): above wind and HVAC rumble
     f_max: float = 8000.0
     lag_rate: float = 96000.0  #: correlation lag resolution 10.4 us (band-limited interpolation)
@@ -66,7 +66,8 @@ class ClockCalibrationConfig:
     ground_height: float = 0.0  #: z of the reflecting roof in the rig frame (m)
     sigma: float = 2e-5  #: scale of a measurement's error (s): residuals are divided by it
     loss_scale: float = 3.0  #: soft-L1 knee, in units of ``sigma``
-    min_peak: float = 0.05  #: frames whose best pair score (mean over pairs) is below: no coherent source
+    min_peak: float = 4.0  #: blocks whose multipath score (mean over pairs, in units of the correlation's
+    #: robust spread) is below: no coherent source
     fit_drift: bool = False  #: also fit a constant drift per node (ppm)
     jackknife_blocks: int = 5  #: blocks of the uncertainty's jackknife (0: none)
 
@@ -126,14 +127,15 @@ class FrameMeasurements:
     times: np.ndarray  #: frame centres, seconds after the first sample
     reflection: np.ndarray  #: F x C (s); NaN where no peak
     tdoa: np.ndarray  #: F x P (s), apparent (offset-corrupted)
-    score: np.ndarray  #: F: mean over pairs of the chosen multipath score
+    score: np.ndarray  #: B: mean over pairs of the chosen multipath score over the correlation's spread
 
 
-def _frame_starts(audio: AudioStream, config: ClockCalibrationConfig, frame: int) -> np.ndarray:
-    hop = int(round(config.hop_seconds * audio.sample_rate))
-    starts = np.arange(0, audio.num_samples - frame + 1, max(hop, 1))
-    if starts.size > config.max_frames:
-        starts = starts[np.linspace(0, starts.size - 1, config.max_frames).round().astype(int)]
+def _block_starts(audio: AudioStream, config: ClockCalibrationConfig, frame: int) -> np.ndarray:
+    """First sample of each block (``block_frames`` consecutive frames), at most ``max_blocks`` spread evenly."""
+    span = frame * config.block_frames
+    starts = np.arange(0, audio.num_samples - span + 1, span)
+    if starts.size > config.max_blocks:
+        starts = starts[np.linspace(0, starts.size - 1, config.max_blocks).round().astype(int)]
     return starts
 
 
@@ -149,7 +151,12 @@ def _interp(corr: np.ndarray, lags: np.ndarray, rate: float, half: int) -> np.nd
 
 
 def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibrationConfig()) -> FrameMeasurements:
-    """Reflection delays and multipath-matched pair time differences of frames spread over ``audio``."""
+    """Reflection delays and multipath-matched pair time differences of blocks spread over ``audio``.
+
+    Each frame gives a PHAT correlation per pair (its cross-spectra minus their mean over all blocks:
+    static sources) and a cepstrum per channel; a block averages its frames' correlations and cepstra
+    (in the lag domain, so a moving source smears its peaks a little instead of cancelling them).
+    """
     fs, channels = float(audio.sample_rate), audio.num_channels
     c = config.speed_of_sound
     mics = np.asarray(audio.mic_positions, dtype=np.float64)
@@ -161,58 +168,69 @@ def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibratio
     pairs = mic_pairs(channels)
     spread = max(np.linalg.norm(mics[i] - mics[j]) for i, j in pairs) / c
     max_tdoa = spread + config.max_offset
-    recipe = PhaseRecipe("clock_calibration", frame_seconds=config.frame_seconds, frames=1,
+    recipe = PhaseRecipe("clock_calibration", frame_seconds=config.frame_seconds, frames=config.block_frames,
                          max_delay=max_tdoa + float(max_reflection.max()) + 1e-3, lag_rate=config.lag_rate,
                          f_min=config.f_min, f_max=config.f_max)
     gcc = GccPhat(recipe, fs, channels)
-    starts = _frame_starts(audio, config, gcc.frame)
-    if starts.size < config.min_frames:
-        raise ClockCalibrationError(f"clock calibration needs at least {config.min_frames} frames of "
-                                    f"{config.frame_seconds:.3f} s every {config.hop_seconds:g} s; the audio "
+    starts = _block_starts(audio, config, gcc.frame)
+    if starts.size < config.min_blocks:
+        raise ClockCalibrationError(f"clock calibration needs at least {config.min_blocks} blocks of "
+                                    f"{config.block_frames} x {config.frame_seconds:.3f} s; the audio "
                                     f"({audio.duration:.1f} s) gives {starts.size}")
-    frames = np.stack([audio.read(int(s), int(s) + gcc.frame) for s in starts], axis=1)  # C x F x frame
-    if not np.isfinite(frames).all():
-        raise ClockCalibrationError("clock calibration: the audio holds NaN or infinite samples")
-    with torch.no_grad():
-        x = torch.from_numpy(np.ascontiguousarray(frames, dtype=np.float32))
-        spectra = torch.fft.rfft(x * gcc.window, n=gcc.n_fft)[..., gcc.band]  # C x F x K
-        cross = (spectra[gcc.first] * spectra[gcc.second].conj()).to(torch.complex128)
-        cross = cross - cross.mean(dim=1, keepdim=True)  # static sources over the stretch
-        corr = gcc.correlate(cross).numpy().astype(np.float64)  # P x F x lags
-        power = (spectra.abs() ** 2).numpy().astype(np.float64)
-    half = (corr.shape[-1] - 1) // 2
-    rate = recipe.lag_rate
-
-    # reflection delays: cepstrum of each channel's log spectrum minus the channels' mean
     freqs = np.fft.rfftfreq(gcc.n_fft, 1.0 / fs)[gcc.band]
-    log_power = np.log(power + 1e-20 * power.mean())
-    relative = log_power - log_power.mean(axis=0, keepdims=True)
-    relative -= relative.mean(axis=-1, keepdims=True)
     quefrency = np.arange(config.min_quefrency, float(max_reflection.max()) + config.quefrency_step,
                           config.quefrency_step)
-    basis = np.cos(2 * np.pi * freqs[:, None] * quefrency[None, :]) * (2.0 / freqs.size)
-    cepstrum = relative @ basis  # C x F x Q
-    cepstrum[quefrency[None, None, :] > max_reflection[:, None, None] * np.ones((1, len(starts), 1))] = -np.inf
+    basis = torch.from_numpy(np.cos(2 * np.pi * freqs[:, None] * quefrency[None, :]) * (2.0 / freqs.size))
+
+    def spectra_of(start: int) -> torch.Tensor:
+        samples = audio.read(int(start), int(start) + gcc.frame * config.block_frames)
+        if not np.isfinite(samples).all():
+            raise ClockCalibrationError(f"clock calibration: the audio at {start / fs:.2f} s holds NaN or "
+                                        f"infinite samples")
+        x = torch.from_numpy(np.ascontiguousarray(samples)).reshape(channels, config.block_frames, gcc.frame)
+        return torch.fft.rfft(x * gcc.window, n=gcc.n_fft)[..., gcc.band]
+
+    with torch.no_grad():
+        def cross_of(spectra: torch.Tensor) -> torch.Tensor:
+            return (spectra[gcc.first] * spectra[gcc.second].conj()).to(torch.complex128)
+
+        static = sum(cross_of(spectra_of(start)).mean(dim=1) for start in starts) / len(starts)
+        corr_blocks, cepstrum_blocks = [], []
+        for start in starts:
+            spectra = spectra_of(start)  # C x F x K
+            cross = cross_of(spectra) - static[:, None, :]
+            corr_blocks.append(gcc.correlate(cross).mean(dim=1).double())
+            log_power = torch.log(spectra.abs().double() ** 2 + 1e-30)
+            relative = log_power - log_power.mean(dim=0, keepdim=True)
+            relative = relative - relative.mean(dim=-1, keepdim=True)
+            cepstrum_blocks.append((relative @ basis).mean(dim=1))
+        corr = torch.stack(corr_blocks, dim=1).numpy()  # P x B x lags
+        cepstrum = torch.stack(cepstrum_blocks, dim=1).numpy()  # C x B x Q
+    half = (corr.shape[-1] - 1) // 2
+    rate = recipe.lag_rate
+    blocks = len(starts)
+
+    # reflection delays: the peak of each channel's cepstrum below its 2 h / c
+    cepstrum[np.broadcast_to(quefrency > max_reflection[:, None, None], cepstrum.shape)] = -np.inf
     best = cepstrum.argmax(axis=-1)
-    reflection = quefrency[best] + _parabolic(cepstrum, best) * config.quefrency_step  # C x F
-    reflection = reflection.T
+    reflection = (quefrency[best] + _parabolic(cepstrum, best) * config.quefrency_step).T  # B x C
 
     # pair time differences: the lag whose four multipath peaks score highest
     lag_grid = np.arange(-half, half + 1) / rate
     candidates = lag_grid[np.abs(lag_grid) <= max_tdoa]
-    tdoa = np.empty((len(starts), len(pairs)))
-    score = np.empty((len(starts), len(pairs)))
+    tdoa = np.empty((blocks, len(pairs)))
+    score = np.empty((blocks, len(pairs)))
+    d = np.broadcast_to(candidates[None, :], (blocks, candidates.size))
     for p, (i, j) in enumerate(pairs):
         ti, tj = reflection[:, i][:, None], reflection[:, j][:, None]
-        d = candidates[None, :]
         g = corr[p]
-        total = (_interp(g, np.broadcast_to(d, (len(starts), d.size)), rate, half)
-                 + _interp(g, d + ti, rate, half) + _interp(g, d - tj, rate, half)
+        total = (_interp(g, d, rate, half) + _interp(g, d + ti, rate, half) + _interp(g, d - tj, rate, half)
                  + _interp(g, d + ti - tj, rate, half))
         k = total.argmax(axis=1)
         tdoa[:, p] = candidates[k] + _parabolic(total, k) / rate
-        score[:, p] = total[np.arange(len(starts)), k] / 4
-    times = (starts + gcc.frame / 2) / fs
+        noise = 1.4826 * np.median(np.abs(g - np.median(g, axis=1, keepdims=True)), axis=1)
+        score[:, p] = total[np.arange(blocks), k] / 4 / np.maximum(noise, 1e-12)
+    times = (starts + gcc.frame * config.block_frames / 2) / fs
     return FrameMeasurements(times, reflection, tdoa, score.mean(axis=1))
 
 
@@ -320,9 +338,9 @@ def estimate_clock_offsets(audio: AudioStream, config: ClockCalibrationConfig = 
         raise ClockCalibrationError("clock calibration needs the microphone positions (all zero or missing)")
     m = measure(audio, config)
     frames = np.flatnonzero((m.score >= config.min_peak) & np.isfinite(m.reflection).all(axis=1))
-    if frames.size < config.min_frames:
-        raise ClockCalibrationError(f"clock calibration found a coherent source in {frames.size} frames, needs "
-                                    f"{config.min_frames}")
+    if frames.size < config.min_blocks:
+        raise ClockCalibrationError(f"clock calibration found a coherent source in {frames.size} blocks, needs "
+                                    f"{config.min_blocks}")
     model = _Model(mics, m, config)
     positions = _initial_positions(mics, m, frames, config)
     clocks = np.zeros(model.clock_params)
