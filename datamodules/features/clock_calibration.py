@@ -27,6 +27,7 @@ early; :func:`correct_cross_spectra` undoes that on pair cross-spectra by the ph
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -44,6 +45,17 @@ log = logging.getLogger(__name__)
 SPEED_OF_SOUND = 349.0
 
 
+#: when phase features correct the nodes' clocks: ``auto`` when the recording says its nodes do not share one
+CLOCK_CALIBRATION_MODES = ("auto", "on", "off")
+
+
+def wants_calibration(mode: str, meta: dict[str, Any]) -> bool:
+    """Whether ``mode`` (:data:`CLOCK_CALIBRATION_MODES`) calibrates a recording with metadata ``meta``."""
+    if mode not in CLOCK_CALIBRATION_MODES:
+        raise ValueError(f"clock_calibration must be one of {CLOCK_CALIBRATION_MODES}, not {mode!r}")
+    return mode == "on" or (mode == "auto" and meta.get("nodes_share_clock", True) is False)
+
+
 class ClockCalibrationError(RecordingError):
     """A recording the calibration cannot use (no positions, too short, too few usable frames)."""
 
@@ -53,7 +65,7 @@ class ClockCalibrationConfig:
     """Settings of :func:`estimate_clock_offsets` (defaults: the simulator's rooftop rig)."""
 
     frame_seconds: float = 4096 / 48000  #: the phase recipes' frame (85.3 ms)
-    block_frames: int = 12  #: consecutive frames averaged into one block (1.02 s: weak sources need it)
+    block_frames: int = 4  #: consecutive frames averaged into one block (0.34 s)
     max_blocks: int = 240  #: at most this many blocks, spread evenly over the recording
     min_blocks: int = 10  #: fewer usable blocks: refuse
     f_min: float = 300.0  #: band of both measurements (Hz): above wind and HVAC rumble
@@ -73,8 +85,6 @@ class ClockCalibrationConfig:
 
     def key(self) -> str:
         """A short digest of the settings (for cache keys)."""
-        import hashlib
-
         return hashlib.sha256(repr(sorted(asdict(self).items())).encode()).hexdigest()[:12]
 
 
@@ -107,6 +117,22 @@ class ClockCalibration:
         arrays = {name: np.asarray(meta[name], dtype=np.float64)
                   for name in ("offsets_s", "offsets_std_s", "drifts_ppm", "drifts_std_ppm")}
         return cls(**arrays, frames=int(meta["frames"]), residual_rms_s=float(meta["residual_rms_s"]))
+
+    def to_array(self) -> np.ndarray:
+        """5 x nodes: offsets, their std, drifts, their std, then [frames, residual RMS, 0 ...] (for caches)."""
+        extra = np.zeros(self.offsets_s.size)
+        extra[:2] = [self.frames, self.residual_rms_s][:extra.size]
+        return np.stack([self.offsets_s, self.offsets_std_s, self.drifts_ppm, self.drifts_std_ppm, extra])
+
+    @classmethod
+    def from_array(cls, array: np.ndarray) -> ClockCalibration:
+        array = np.asarray(array, dtype=np.float64)
+        return cls(*array[:4].copy(), frames=int(array[4, 0]), residual_rms_s=float(array[4, 1]))
+
+    def key(self) -> str:
+        """A short digest of the correction it makes (for feature cache keys)."""
+        rounded = np.round(np.stack([self.offsets_s * 1e9, self.drifts_ppm * 1e3]))  # ns and ppb
+        return hashlib.sha256(rounded.tobytes()).hexdigest()[:12]
 
     def summary(self) -> str:
         """One line: offsets (ms) with their uncertainty, and drifts if fitted."""
@@ -369,23 +395,3 @@ def _jackknife(model: _Model, frames: np.ndarray, theta: np.ndarray, blocks: int
         estimates.append(model.solve(frames[keep], start).x[:k])
     estimates = np.array(estimates)
     return np.sqrt((blocks - 1) / blocks * ((estimates - estimates.mean(axis=0)) ** 2).sum(axis=0))
-
-
-# ------------------------------------------------------------------------------ correction
-
-
-def correct_cross_spectra(cross: torch.Tensor, freqs: torch.Tensor, offsets: np.ndarray, first: torch.Tensor,
-                          second: torch.Tensor) -> torch.Tensor:
-    """Pair cross-spectra (pairs x ... x bins) of audio whose node ``n`` runs ``offsets[..., n]`` seconds early,
-    as if every node shared node 0's clock: times ``exp(-i w (o_i - o_j))``.
-
-    ``offsets`` is C (one value for all frames) or F x C (per frame, for drift; frames on the second axis).
-    """
-    offsets = torch.as_tensor(np.asarray(offsets, dtype=np.float64))
-    difference = offsets[..., first] - offsets[..., second]  # P or F x P
-    if difference.dim() == 2:
-        difference = difference.T  # P x F
-    shape = difference.shape + (1,) * (cross.dim() - difference.dim() - 1) + (freqs.numel(),)
-    ramp = torch.exp(-2j * torch.pi * difference.reshape(*difference.shape, *([1] * (len(shape) - difference.dim())))
-                     * freqs.to(torch.float64).reshape(shape[-1:]))
-    return cross * ramp.to(cross.dtype)
