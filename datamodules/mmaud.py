@@ -475,8 +475,11 @@ class MMAUDDataModule(L.LightningDataModule):
         return SequenceSamples(path, recording.sequence_id, recording.drone, times, gt, gt_valid, pseudo,
                                pseudo_valid, image_index, visible, class_id, keys, mic_positions=mics)
 
-    def _clock_calibration(self, path: Path, recording: Recording) -> ClockCalibration:
-        """The nodes' clock offsets estimated from the recording's audio (cached beside its features)."""
+    def _clock_calibration(self, path: Path, recording: Recording) -> ClockCalibration | None:
+        """The nodes' clock offsets estimated from the recording's audio (cached beside its features).
+
+        When the audio cannot tell them (too short, no coherent source), ``clock_calibration: on`` raises
+        and ``auto`` warns and leaves the features uncorrected (None)."""
         config = ClockCalibrationConfig()
         audio = recording.audio
         options = repr(sorted((self.hparams.reader_options or {}).items())).encode()
@@ -489,7 +492,13 @@ class MMAUDDataModule(L.LightningDataModule):
             except ClockCalibrationError as error:
                 raise ClockCalibrationError(f"{path}: {error} (set clock_calibration: off to skip it)") from None
 
-        self.cache.build(key, 1, (5, audio.num_channels), np.float64, estimate)
+        try:
+            self.cache.build(key, 1, (5, audio.num_channels), np.float64, estimate)
+        except ClockCalibrationError as error:
+            if self.hparams.clock_calibration == "on":
+                raise
+            log.warning("%s; its phase features are not corrected", error)
+            return None
         clocks = ClockCalibration.from_array(self.cache.open(key)[0])
         log.info("%s: %s", path, clocks.summary())
         return clocks
@@ -522,6 +531,7 @@ class MMAUDDataModule(L.LightningDataModule):
             clocks = None
             if wants_calibration(self.hparams.clock_calibration, recording.meta):
                 clocks = self._clock_calibration(path, recording)
+            if clocks is not None:
                 key += f"-clk{clocks.key()}"
             keys["audio_phase"] = key
             # float16 halves the cache (values lie in [-1, 1]; 1e-3 resolution is far below the frames' noise)
