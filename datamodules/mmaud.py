@@ -430,9 +430,9 @@ class MMAUDDataModule(L.LightningDataModule):
             if recipe is not None and audio is None:
                 raise RecordingError(f"{path}: the model needs audio ('{recipe.name}') but the recording has none")
         if self.phase_recipe is not None:
-            require_mic_positions(recording, path, f"phase features ('{self.phase_recipe.name}')")
             if not wants_calibration(self.hparams.clock_calibration, recording.meta):
                 warn_unshared_clocks(recording.meta, str(path), f"phase features ('{self.phase_recipe.name}')")
+            require_mic_positions(recording, path, f"phase features ('{self.phase_recipe.name}')")
         if self.phase_recipe is not None and audio.num_channels < 2:
             raise RecordingError(f"{path}: phase features ('{self.phase_recipe.name}') need at least 2 microphones "
                                  f"with known positions; the recording has {audio.num_channels}")
