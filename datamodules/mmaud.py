@@ -51,6 +51,14 @@ from datamodules.features import (
     scale_image,
     stored_recipe,
 )
+from datamodules.features.clock_calibration import (
+    CLOCK_CALIBRATION_MODES,
+    ClockCalibration,
+    ClockCalibrationConfig,
+    ClockCalibrationError,
+    estimate_clock_offsets,
+    wants_calibration,
+)
 from datamodules.formats.node_audio import warn_unshared_clocks
 from datamodules.formats.positions import require_mic_positions
 from datamodules.recording import Recording, RecordingError, Track
@@ -188,6 +196,9 @@ class MMAUDDataModule(L.LightningDataModule):
             (AV-FDTI) cover; the default is the MMAUD flight region the simulator flies in.
         reader_options: passed to :func:`datamodules.formats.open_recording` for the layouts that take
             them, e.g. ``{"sample_rate": 46080}`` for the derived npy layout of the AAUTE code.
+        clock_calibration: whether phase features first correct the audio nodes' clock offsets, estimated
+            from each recording's own audio (:mod:`datamodules.features.clock_calibration`): ``auto`` (when
+            the recording's metadata says ``nodes_share_clock: false``), ``on`` or ``off``.
     """
 
     def __init__(
@@ -209,8 +220,11 @@ class MMAUDDataModule(L.LightningDataModule):
         image_tolerance_s: float = 0.1,
         bev_bounds: list[list[float]] | None = None,
         reader_options: dict[str, Any] | None = None,
+        clock_calibration: str = "auto",
     ):
         super().__init__()
+        if clock_calibration not in CLOCK_CALIBRATION_MODES:
+            raise ConfigError(f"clock_calibration must be one of {CLOCK_CALIBRATION_MODES}, not {clock_calibration!r}")
         if bev_bounds is None:
             bev_bounds = [[-2.0, 8.0], [-5.0, 25.0]]
         self.save_hyperparameters()
@@ -416,7 +430,8 @@ class MMAUDDataModule(L.LightningDataModule):
             if recipe is not None and audio is None:
                 raise RecordingError(f"{path}: the model needs audio ('{recipe.name}') but the recording has none")
         if self.phase_recipe is not None:
-            warn_unshared_clocks(recording.meta, str(path), f"phase features ('{self.phase_recipe.name}')")
+            if not wants_calibration(self.hparams.clock_calibration, recording.meta):
+                warn_unshared_clocks(recording.meta, str(path), f"phase features ('{self.phase_recipe.name}')")
             require_mic_positions(recording, path, f"phase features ('{self.phase_recipe.name}')")
         if self.phase_recipe is not None and audio.num_channels < 2:
             raise RecordingError(f"{path}: phase features ('{self.phase_recipe.name}') need at least 2 microphones "
@@ -460,6 +475,34 @@ class MMAUDDataModule(L.LightningDataModule):
         return SequenceSamples(path, recording.sequence_id, recording.drone, times, gt, gt_valid, pseudo,
                                pseudo_valid, image_index, visible, class_id, keys, mic_positions=mics)
 
+    def _clock_calibration(self, path: Path, recording: Recording) -> ClockCalibration | None:
+        """The nodes' clock offsets estimated from the recording's audio (cached beside its features).
+
+        When the audio cannot tell them (too short, no coherent source), ``clock_calibration: on`` raises
+        and ``auto`` warns and leaves the features uncorrected (None)."""
+        config = ClockCalibrationConfig()
+        audio = recording.audio
+        options = repr(sorted((self.hparams.reader_options or {}).items())).encode()
+        key = (f"clocks-{config.key()}-{array_fingerprint(audio.mic_positions.astype(np.float64))}-"
+               f"{path_fingerprint(path)}-{zlib.crc32(options):08x}")
+
+        def estimate(_: int) -> np.ndarray:
+            try:
+                return estimate_clock_offsets(audio, config).to_array()
+            except ClockCalibrationError as error:
+                raise ClockCalibrationError(f"{path}: {error} (set clock_calibration: off to skip it)") from None
+
+        try:
+            self.cache.build(key, 1, (5, audio.num_channels), np.float64, estimate)
+        except ClockCalibrationError as error:
+            if self.hparams.clock_calibration == "on":
+                raise
+            log.warning("%s; its phase features are not corrected", error)
+            return None
+        clocks = ClockCalibration.from_array(self.cache.open(key)[0])
+        log.info("%s: %s", path, clocks.summary())
+        return clocks
+
     def _build_features(self, path: Path, recording: Recording, times: np.ndarray,
                         image_index: np.ndarray) -> dict[str, str]:
         """Cache the model's inputs for every sample (entries that exist are reused)."""
@@ -485,10 +528,15 @@ class MMAUDDataModule(L.LightningDataModule):
             recipe, audio = self.phase_recipe, recording.audio
             mics = array_fingerprint(audio.mic_positions.astype(np.float64))
             key = f"phase-{recipe.key()}-{mics}-{WINDOW_INDEXING}-{base}"
+            clocks = None
+            if wants_calibration(self.hparams.clock_calibration, recording.meta):
+                clocks = self._clock_calibration(path, recording)
+            if clocks is not None:
+                key += f"-clk{clocks.key()}"
             keys["audio_phase"] = key
             # float16 halves the cache (values lie in [-1, 1]; 1e-3 resolution is far below the frames' noise)
             self.cache.build(key, times.size, recipe.output_shape(audio.num_channels), np.float16,
-                             PhaseWindows(audio, recipe, times, source=str(path)))
+                             PhaseWindows(audio, recipe, times, source=str(path), clocks=clocks))
         if self.image_recipe is not None:
             recipe, frames = self.image_recipe, recording.frames
             key = f"img-{recipe.key()}-{base}"

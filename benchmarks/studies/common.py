@@ -18,14 +18,16 @@ def held_out_split(seed: int) -> dict[str, float]:
 
 
 def recordings_module(data: list[Path], recipe: str, cache: Path | None, batch_size: int = 64,
-                      label_rate: float | None = None) -> MMAUDDataModule:
+                      label_rate: float | None = None, clock_calibration: str = "auto") -> MMAUDDataModule:
     """A DataModule, set up, whose test split is every recording under ``data``, with the phase ``recipe``
-    (its features made through the cache) and windows at ``label_rate`` (default: the DataModule's)."""
+    (its features made through the cache), windows at ``label_rate`` (default: the DataModule's) and the
+    DataModule's ``clock_calibration`` mode."""
     stems = [path.stem for path in discover([str(d) for d in data])]
     rate = {} if label_rate is None else {"label_rate": label_rate}
     module = MMAUDDataModule([str(d) for d in data], split={"train": [], "val": [], "test": stems},
                              inputs={"audio_phase": recipe}, test_lights=["ideal"], batch_size=batch_size,
-                             cache_dir=None if cache is None else str(cache), **rate)
+                             cache_dir=None if cache is None else str(cache), clock_calibration=clock_calibration,
+                             **rate)
     module.setup("test")
     return module
 

@@ -7,7 +7,8 @@
 - :mod:`~datamodules.features.incremental_phase`: the streaming twin of the phase recipe (each frame's
   cross-spectra once, the causal static mean folded as audio arrives), equal to :class:`PhaseWindows`;
 - :mod:`~datamodules.features.image`: camera image recipes and the darkness protocols;
-- :mod:`~datamodules.features.phase`: GCC-PHAT phase features of every microphone pair.
+- :mod:`~datamodules.features.phase`: GCC-PHAT phase features of every microphone pair;
+- :mod:`~datamodules.features.clock_calibration`: the audio nodes' clock offsets estimated from the audio itself.
 """
 
 from datamodules.features.image import (
@@ -39,6 +40,7 @@ from datamodules.features.phase import (
     GccPhat,
     PhaseRecipe,
     PhaseWindows,
+    correct_cross_spectra,
     mic_pairs,
     pair_indices,
     phase_features,
@@ -60,6 +62,7 @@ __all__ = [
     "PhaseRecipe",
     "PhaseWindows",
     "audio_window",
+    "correct_cross_spectra",
     "final_resize",
     "frame_power_mel",
     "image_features",

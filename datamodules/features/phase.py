@@ -11,11 +11,15 @@ from __future__ import annotations
 import hashlib
 from dataclasses import asdict, dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from datamodules.recording import AudioStream, RecordingError
+
+if TYPE_CHECKING:
+    from datamodules.features.clock_calibration import ClockCalibration
 
 
 @dataclass(frozen=True)
@@ -179,6 +183,20 @@ class GccPhat:
         return lags * self.scale
 
 
+def correct_cross_spectra(cross: torch.Tensor, freqs: torch.Tensor, offsets: np.ndarray, first: torch.Tensor,
+                          second: torch.Tensor) -> torch.Tensor:
+    """Pair cross-spectra (pairs x frames x bins) of audio whose node ``n`` runs ``offsets[..., n]`` seconds
+    early, as if every node shared node 0's clock: times ``exp(-i w (o_i - o_j))`` (exact for a constant offset).
+
+    ``offsets`` is C (all frames) or frames x C (per frame: a drifting clock).
+    """
+    offsets = torch.as_tensor(np.asarray(offsets, dtype=np.float64))
+    difference = offsets[..., first] - offsets[..., second]  # P, or F x P
+    difference = difference[:, None] if difference.dim() == 1 else difference.T  # P x 1, or P x F
+    ramp = torch.exp(-2j * torch.pi * difference[..., None] * freqs.to(torch.float64))
+    return cross * ramp.to(cross.dtype)
+
+
 def split_frames(samples: np.ndarray, frame: int, frames: int) -> torch.Tensor:
     """The last ``frames`` x ``frame`` samples of C x N audio as C x frames x frame."""
     needed = frame * frames
@@ -220,15 +238,21 @@ def _gcc_phat(recipe: PhaseRecipe, sample_rate: float, channels: int) -> GccPhat
 class PhaseWindows:
     """Phase features of the windows ending at increasing ``times`` of one audio stream.
 
+    With ``clocks`` (the nodes' estimated clock offsets, :mod:`datamodules.features.clock_calibration`)
+    every frame's cross-spectra are corrected to node 0's clock before anything else.
+
     Without static suppression each window is independent. With it, a causal exponential average
     of every pair's cross-spectrum is carried along the stream on consecutive frames from the start
     of the audio up to the start of each window, so windows must be asked for in time order (the
     feature cache builds them so); asking out of order raises.
     """
 
-    def __init__(self, audio: AudioStream, recipe: PhaseRecipe, times: np.ndarray, source: str = "audio"):
+    def __init__(self, audio: AudioStream, recipe: PhaseRecipe, times: np.ndarray, source: str = "audio",
+                 clocks: ClockCalibration | None = None):
         self.audio, self.recipe, self.times, self.source = audio, recipe, np.asarray(times, dtype=np.float64), source
         self.gcc = _gcc_phat(recipe, float(audio.sample_rate), audio.num_channels)
+        self.clocks = clocks
+        self.freqs = self.gcc.bins.to(torch.float64) * float(audio.sample_rate) / self.gcc.n_fft
         self.mean: torch.Tensor | None = None  #: long-term mean cross-spectra (pairs x band bins)
         self.next_frame = 0  #: first sample of the next frame to fold into the mean
         self.folded = 0  #: frames folded into the mean so far
@@ -244,7 +268,8 @@ class PhaseWindows:
         except RecordingError as error:
             raise RecordingError(f"{self.source}: window ending at {t_end:.3f} s: {error}") from None
         with torch.no_grad():
-            cross = self.gcc.cross_spectra(frames)
+            first = self.audio.sample_index(t_end) - frames.shape[1] * self.gcc.frame
+            cross = self._corrected(self.gcc.cross_spectra(frames), first)
             if self.recipe.suppress_static:
                 if i <= self.last:
                     raise ValueError("static suppression needs the windows in time order")
@@ -268,8 +293,18 @@ class PhaseWindows:
             if not np.isfinite(samples).all():
                 start = self.audio.t0 + self.next_frame / self.audio.sample_rate
                 raise RecordingError(f"{self.source}: audio at {start:.3f} s holds NaN or infinite samples")
-            cross = self.gcc.cross_spectra(torch.from_numpy(samples)[:, None, :])[:, 0]
+            cross = self.gcc.cross_spectra(torch.from_numpy(samples)[:, None, :])
+            cross = self._corrected(cross, self.next_frame)[:, 0]
             self.folded += 1
             weight = max(1.0 / self.folded, 1.0 - self.decay)
             self.mean = fold_mean(self.mean, cross, weight)
             self.next_frame += frame
+
+    def _corrected(self, cross: torch.Tensor, first_sample: int) -> torch.Tensor:
+        """Cross-spectra (pairs x frames x bins) of consecutive frames from ``first_sample`` on node 0's clock."""
+        if self.clocks is None:
+            return cross
+        frame = self.gcc.frame
+        centres = (first_sample + frame * (np.arange(cross.shape[1]) + 0.5)) / self.audio.sample_rate
+        offsets = self.clocks.offsets_at(centres) if np.any(self.clocks.drifts_ppm) else self.clocks.offsets_s
+        return correct_cross_spectra(cross, self.freqs, offsets, self.gcc.first, self.gcc.second)

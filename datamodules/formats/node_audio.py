@@ -117,7 +117,8 @@ def combine_nodes(nodes: list[AudioNode], where: str, share_clock: bool = False
 def warn_unshared_clocks(meta: dict[str, Any], where: str, use: str) -> bool:
     """Warn (and say so) when ``use`` takes time differences between audio nodes that do not share a clock.
 
-    Offsets between node clocks are not estimated (yet): each 1 ms between two nodes moves their time
+    Called when the offsets between node clocks are not calibrated (the DataModule's ``clock_calibration:
+    off``, :mod:`datamodules.features.clock_calibration`): each 1 ms between two nodes moves their time
     difference by 0.35 m of path, which costs a steering localiser metres (README: clock sensitivity).
     """
     if meta.get("nodes_share_clock", True) is not False:

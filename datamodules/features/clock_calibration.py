@@ -1,0 +1,397 @@
+"""Self-calibration of the audio nodes' clock offsets from a recording's own audio.
+
+Four single-microphone nodes give, per frame, three independent time differences for three
+unknown source coordinates, so constant offsets between their clocks cannot be told from the
+direct-path time differences alone (``benchmarks/studies/clock_sensitivity.py --identifiability``).
+Each microphone also hears the source a second time via the roof (its ground image): the delay
+``tau_i = (|s - m_i'| - |s - m_i|) / c`` between the two paths lies inside one node's own clock, so no
+offset touches it. Per frame this estimator measures
+
+- each channel's reflection delay: the peak, over ``0 .. 2 h_i / c``, of the cepstrum of its log power
+  spectrum minus the channels' mean log spectrum (the source spectrum cancels; a reflection of factor
+  ``r`` adds ``2 r cos(w tau_i)`` to the log spectrum, a cepstral peak at ``tau_i``), and
+- each pair's apparent time difference: the lag of the GCC-PHAT correlation (the phase front end's
+  cross-spectra, :class:`~datamodules.features.phase.GccPhat`; the mean cross-spectrum over the
+  stretch, static sources such as a rooftop HVAC unit, subtracted first) that best explains its four
+  multipath peaks (direct-direct, image-direct, direct-image, image-image) given the two delays,
+
+then fits one source position per frame and the offsets shared by all frames (node 0 = 0; optionally
+a drift per node) by robust least squares (:func:`scipy.optimize.least_squares`, soft-L1 loss). The
+uncertainty is a delete-a-block jackknife over contiguous blocks of frames.
+
+Convention (as the simulator's ``clocks_truth``): node ``n``'s sample ``k`` is taken at true time
+``k / fs * (1 + drift_n) + offset_n``, so its audio shows a sound ``offset_n + drift_n * t`` seconds
+early; :func:`correct_cross_spectra` undoes that on pair cross-spectra by the phase ramp
+``exp(-i w (o_i - o_j))``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from datamodules.features.phase import GccPhat, PhaseRecipe, mic_pairs
+from datamodules.recording import AudioStream, RecordingError
+
+log = logging.getLogger(__name__)
+
+#: m/s: the speed of sound the phase nets steer with (zoo.nets.phase.steering.SPEED_OF_SOUND; not imported:
+#: imports go zoo -> datamodules)
+SPEED_OF_SOUND = 349.0
+
+
+#: when phase features correct the nodes' clocks: ``auto`` when the recording says its nodes do not share one
+CLOCK_CALIBRATION_MODES = ("auto", "on", "off")
+
+
+def wants_calibration(mode: str, meta: dict[str, Any]) -> bool:
+    """Whether ``mode`` (:data:`CLOCK_CALIBRATION_MODES`) calibrates a recording with metadata ``meta``."""
+    if mode not in CLOCK_CALIBRATION_MODES:
+        raise ValueError(f"clock_calibration must be one of {CLOCK_CALIBRATION_MODES}, not {mode!r}")
+    return mode == "on" or (mode == "auto" and meta.get("nodes_share_clock", True) is False)
+
+
+class ClockCalibrationError(RecordingError):
+    """A recording the calibration cannot use (no positions, too short, too few usable frames)."""
+
+
+@dataclass(frozen=True)
+class ClockCalibrationConfig:
+    """Settings of :func:`estimate_clock_offsets` (defaults: the simulator's rooftop rig)."""
+
+    frame_seconds: float = 4096 / 48000  #: the phase recipes' frame (85.3 ms)
+    block_frames: int = 4  #: consecutive frames averaged into one block (0.34 s)
+    max_blocks: int = 240  #: at most this many blocks, spread evenly over the recording
+    min_blocks: int = 10  #: fewer usable blocks: refuse
+    f_min: float = 300.0  #: band of both measurements (Hz): above wind and HVAC rumble
+    f_max: float = 8000.0
+    lag_rate: float = 96000.0  #: correlation lag resolution 10.4 us (band-limited interpolation)
+    quefrency_step: float = 5e-6  #: cepstrum grid (s)
+    min_quefrency: float = 1.5e-4  #: below: the cepstrum's spectral-envelope lobe (about 1 / band)
+    max_offset: float = 0.01  #: largest offset between two nodes searched (s)
+    speed_of_sound: float = SPEED_OF_SOUND
+    ground_height: float = 0.0  #: z of the reflecting roof in the rig frame (m)
+    sigma: float = 2e-5  #: scale of a measurement's error (s): residuals are divided by it
+    loss_scale: float = 3.0  #: soft-L1 knee, in units of ``sigma``
+    min_peak: float = 4.0  #: blocks whose multipath score (mean over pairs, in units of the correlation's
+    #: robust spread) is below: no coherent source
+    fit_drift: bool = False  #: also fit a constant drift per node (ppm)
+    jackknife_blocks: int = 5  #: blocks of the uncertainty's jackknife (0: none)
+
+    def key(self) -> str:
+        """A short digest of the settings (for cache keys)."""
+        return hashlib.sha256(repr(sorted(asdict(self).items())).encode()).hexdigest()[:12]
+
+
+@dataclass
+class ClockCalibration:
+    """Estimated clocks of a recording's nodes (node 0 is the reference)."""
+
+    offsets_s: np.ndarray  #: per node, offset at the audio's first sample (s)
+    offsets_std_s: np.ndarray  #: jackknife standard error (s); NaN without a jackknife
+    drifts_ppm: np.ndarray  #: per node (0 unless fitted)
+    drifts_std_ppm: np.ndarray
+    frames: int  #: frames used
+    residual_rms_s: float  #: robust RMS of the fit's residuals (s)
+    positions: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 3)))  #: per frame (m)
+    times: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))  #: frame centres (s from sample 0)
+
+    def offsets_at(self, t: float | np.ndarray) -> np.ndarray:
+        """Each node's offset (s) at ``t`` seconds after the first sample (..., nodes)."""
+        t = np.asarray(t, dtype=np.float64)[..., None]
+        return self.offsets_s + self.drifts_ppm * 1e-6 * t
+
+    def meta(self) -> dict[str, Any]:
+        """The estimate for a recording's metadata (``clock_calibration``)."""
+        return {"offsets_s": self.offsets_s.tolist(), "offsets_std_s": self.offsets_std_s.tolist(),
+                "drifts_ppm": self.drifts_ppm.tolist(), "drifts_std_ppm": self.drifts_std_ppm.tolist(),
+                "frames": int(self.frames), "residual_rms_s": float(self.residual_rms_s)}
+
+    @classmethod
+    def from_meta(cls, meta: dict[str, Any]) -> ClockCalibration:
+        arrays = {name: np.asarray(meta[name], dtype=np.float64)
+                  for name in ("offsets_s", "offsets_std_s", "drifts_ppm", "drifts_std_ppm")}
+        return cls(**arrays, frames=int(meta["frames"]), residual_rms_s=float(meta["residual_rms_s"]))
+
+    def to_array(self) -> np.ndarray:
+        """5 x nodes: offsets, their std, drifts, their std, then [frames, residual RMS, 0 ...] (for caches)."""
+        extra = np.zeros(self.offsets_s.size)
+        extra[:2] = [self.frames, self.residual_rms_s][:extra.size]
+        return np.stack([self.offsets_s, self.offsets_std_s, self.drifts_ppm, self.drifts_std_ppm, extra])
+
+    @classmethod
+    def from_array(cls, array: np.ndarray) -> ClockCalibration:
+        array = np.asarray(array, dtype=np.float64)
+        return cls(*array[:4].copy(), frames=int(array[4, 0]), residual_rms_s=float(array[4, 1]))
+
+    def key(self) -> str:
+        """A short digest of the correction it makes (for feature cache keys)."""
+        rounded = np.round(np.stack([self.offsets_s * 1e9, self.drifts_ppm * 1e3]))  # ns and ppb
+        return hashlib.sha256(rounded.tobytes()).hexdigest()[:12]
+
+    def summary(self) -> str:
+        """One line: offsets (ms) with their uncertainty, and drifts if fitted."""
+        parts = [f"{1e3 * o:+.3f} +- {1e3 * s:.3f}" for o, s in zip(self.offsets_s, self.offsets_std_s, strict=True)]
+        text = f"clock offsets (ms, node 0 = 0): {', '.join(parts)} from {self.frames} frames"
+        if np.any(self.drifts_ppm):
+            text += "; drifts (ppm): " + ", ".join(f"{d:+.1f}" for d in self.drifts_ppm)
+        return text
+
+
+# ------------------------------------------------------------------------------ measurements
+
+
+@dataclass
+class FrameMeasurements:
+    """What each used frame says: reflection delays (F x C), pair time differences (F x P), frame times."""
+
+    times: np.ndarray  #: frame centres, seconds after the first sample
+    reflection: np.ndarray  #: F x C (s); NaN where no peak
+    tdoa: np.ndarray  #: F x P (s), apparent (offset-corrupted)
+    score: np.ndarray  #: B: mean over pairs of the chosen multipath score over the correlation's spread
+
+
+def _block_starts(audio: AudioStream, config: ClockCalibrationConfig, frame: int) -> np.ndarray:
+    """First sample of each block (``block_frames`` consecutive frames), at most ``max_blocks`` spread evenly."""
+    span = frame * config.block_frames
+    starts = np.arange(0, audio.num_samples - span + 1, span)
+    if starts.size > config.max_blocks:
+        starts = starts[np.linspace(0, starts.size - 1, config.max_blocks).round().astype(int)]
+    return starts
+
+
+def _interp(corr: np.ndarray, lags: np.ndarray, rate: float, half: int) -> np.ndarray:
+    """Linear interpolation of ``corr`` (..., lags centred on 0, ``half`` each side) at ``lags`` (s); 0 outside."""
+    position = lags * rate + half
+    base = np.floor(position).astype(np.int64)
+    frac = position - base
+    inside = (base >= 0) & (base + 1 < corr.shape[-1])
+    base = np.clip(base, 0, corr.shape[-1] - 2)
+    value = np.take_along_axis(corr, base, -1) * (1 - frac) + np.take_along_axis(corr, base + 1, -1) * frac
+    return np.where(inside, value, 0.0)
+
+
+def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibrationConfig()) -> FrameMeasurements:
+    """Reflection delays and multipath-matched pair time differences of blocks spread over ``audio``.
+
+    Each frame gives a PHAT correlation per pair (its cross-spectra minus their mean over all blocks:
+    static sources) and a cepstrum per channel; a block averages its frames' correlations and cepstra
+    (in the lag domain, so a moving source smears its peaks a little instead of cancelling them).
+    """
+    fs, channels = float(audio.sample_rate), audio.num_channels
+    c = config.speed_of_sound
+    mics = np.asarray(audio.mic_positions, dtype=np.float64)
+    heights = mics[:, 2] - config.ground_height
+    if np.any(heights <= 0):
+        raise ClockCalibrationError(f"clock calibration needs microphones above the ground plane "
+                                    f"(z > {config.ground_height} m), got heights {heights.tolist()}")
+    max_reflection = 2 * heights / c
+    pairs = mic_pairs(channels)
+    spread = max(np.linalg.norm(mics[i] - mics[j]) for i, j in pairs) / c
+    max_tdoa = spread + config.max_offset
+    recipe = PhaseRecipe("clock_calibration", frame_seconds=config.frame_seconds, frames=config.block_frames,
+                         max_delay=max_tdoa + float(max_reflection.max()) + 1e-3, lag_rate=config.lag_rate,
+                         f_min=config.f_min, f_max=config.f_max)
+    gcc = GccPhat(recipe, fs, channels)
+    starts = _block_starts(audio, config, gcc.frame)
+    if starts.size < config.min_blocks:
+        raise ClockCalibrationError(f"clock calibration needs at least {config.min_blocks} blocks of "
+                                    f"{config.block_frames} x {config.frame_seconds:.3f} s; the audio "
+                                    f"({audio.duration:.1f} s) gives {starts.size}")
+    freqs = np.fft.rfftfreq(gcc.n_fft, 1.0 / fs)[gcc.band]
+    quefrency = np.arange(config.min_quefrency, float(max_reflection.max()) + config.quefrency_step,
+                          config.quefrency_step)
+    basis = torch.from_numpy(np.cos(2 * np.pi * freqs[:, None] * quefrency[None, :]) * (2.0 / freqs.size))
+
+    def spectra_of(start: int) -> torch.Tensor:
+        samples = audio.read(int(start), int(start) + gcc.frame * config.block_frames)
+        if not np.isfinite(samples).all():
+            raise ClockCalibrationError(f"clock calibration: the audio at {start / fs:.2f} s holds NaN or "
+                                        f"infinite samples")
+        x = torch.from_numpy(np.ascontiguousarray(samples)).reshape(channels, config.block_frames, gcc.frame)
+        return torch.fft.rfft(x * gcc.window, n=gcc.n_fft)[..., gcc.band]
+
+    with torch.no_grad():
+        def cross_of(spectra: torch.Tensor) -> torch.Tensor:
+            return (spectra[gcc.first] * spectra[gcc.second].conj()).to(torch.complex128)
+
+        static = sum(cross_of(spectra_of(start)).mean(dim=1) for start in starts) / len(starts)
+        corr_blocks, cepstrum_blocks = [], []
+        for start in starts:
+            spectra = spectra_of(start)  # C x F x K
+            cross = cross_of(spectra) - static[:, None, :]
+            corr_blocks.append(gcc.correlate(cross).mean(dim=1).double())
+            log_power = torch.log(spectra.abs().double() ** 2 + 1e-30)
+            relative = log_power - log_power.mean(dim=0, keepdim=True)
+            relative = relative - relative.mean(dim=-1, keepdim=True)
+            cepstrum_blocks.append((relative @ basis).mean(dim=1))
+        corr = torch.stack(corr_blocks, dim=1).numpy()  # P x B x lags
+        cepstrum = torch.stack(cepstrum_blocks, dim=1).numpy()  # C x B x Q
+    half = (corr.shape[-1] - 1) // 2
+    rate = recipe.lag_rate
+    blocks = len(starts)
+
+    # reflection delays: the peak of each channel's cepstrum below its 2 h / c
+    cepstrum[np.broadcast_to(quefrency > max_reflection[:, None, None], cepstrum.shape)] = -np.inf
+    best = cepstrum.argmax(axis=-1)
+    reflection = (quefrency[best] + _parabolic(cepstrum, best) * config.quefrency_step).T  # B x C
+
+    # pair time differences: the lag whose four multipath peaks score highest
+    lag_grid = np.arange(-half, half + 1) / rate
+    candidates = lag_grid[np.abs(lag_grid) <= max_tdoa]
+    tdoa = np.empty((blocks, len(pairs)))
+    score = np.empty((blocks, len(pairs)))
+    d = np.broadcast_to(candidates[None, :], (blocks, candidates.size))
+    for p, (i, j) in enumerate(pairs):
+        ti, tj = reflection[:, i][:, None], reflection[:, j][:, None]
+        g = corr[p]
+        total = (_interp(g, d, rate, half) + _interp(g, d + ti, rate, half) + _interp(g, d - tj, rate, half)
+                 + _interp(g, d + ti - tj, rate, half))
+        k = total.argmax(axis=1)
+        tdoa[:, p] = candidates[k] + _parabolic(total, k) / rate
+        noise = 1.4826 * np.median(np.abs(g - np.median(g, axis=1, keepdims=True)), axis=1)
+        score[:, p] = total[np.arange(blocks), k] / 4 / np.maximum(noise, 1e-12)
+    times = (starts + gcc.frame * config.block_frames / 2) / fs
+    return FrameMeasurements(times, reflection, tdoa, score.mean(axis=1))
+
+
+def _parabolic(values: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Sub-step offset (-0.5 .. 0.5) of the peak at ``index`` along the last axis of ``values``."""
+    idx = np.clip(index, 1, values.shape[-1] - 2)[..., None]
+    y0, y1, y2 = (np.take_along_axis(values, idx + d, -1)[..., 0] for d in (-1, 0, 1))
+    denominator = y0 - 2 * y1 + y2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = np.where(np.isfinite(denominator) & (denominator < 0), 0.5 * (y0 - y2) / denominator, 0.0)
+    shift = np.clip(np.nan_to_num(shift), -0.5, 0.5)
+    return np.where(idx[..., 0] == index, shift, 0.0)
+
+
+# ------------------------------------------------------------------------------ fit
+
+
+class _Model:
+    """Residuals of the joint fit: per frame a position, shared offsets (and drifts) of nodes 1.."""
+
+    def __init__(self, mics: np.ndarray, m: FrameMeasurements, config: ClockCalibrationConfig):
+        self.mics, self.m, self.config = mics, m, config
+        self.images = mics * [1, 1, -1] + [0, 0, 2 * config.ground_height]
+        self.channels = mics.shape[0]
+        pairs = mic_pairs(self.channels)
+        self.first = np.array([i for i, _ in pairs])
+        self.second = np.array([j for _, j in pairs])
+        self.clock_params = (self.channels - 1) * (2 if config.fit_drift else 1)
+        self.t_ref = 0.0
+
+    def clocks(self, theta: np.ndarray, times: np.ndarray) -> np.ndarray:
+        """F x C offsets (s) at the frame times."""
+        n = self.channels - 1
+        offsets = np.concatenate([[0.0], theta[:n]])
+        drifts = np.concatenate([[0.0], theta[n:2 * n] * 1e-6]) if self.config.fit_drift else np.zeros(self.channels)
+        return offsets[None, :] + drifts[None, :] * times[:, None]
+
+    def residuals(self, theta: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        c, sigma = self.config.speed_of_sound, self.config.sigma
+        s = theta[self.clock_params:].reshape(-1, 3)
+        direct = np.linalg.norm(s[:, None, :] - self.mics[None], axis=-1) / c  # F x C
+        image = np.linalg.norm(s[:, None, :] - self.images[None], axis=-1) / c
+        apparent = direct - self.clocks(theta, self.m.times[frames])
+        r_tdoa = self.m.tdoa[frames] - (apparent[:, self.first] - apparent[:, self.second])
+        r_refl = self.m.reflection[frames] - (image - direct)
+        return np.concatenate([r_tdoa.ravel(), r_refl.ravel()]) / sigma
+
+    def sparsity(self, count: int):
+        from scipy.sparse import lil_matrix
+
+        pairs, channels = len(self.first), self.channels
+        rows = count * (pairs + channels)
+        pattern = lil_matrix((rows, self.clock_params + 3 * count), dtype=np.int8)
+        for f in range(count):
+            position = slice(self.clock_params + 3 * f, self.clock_params + 3 * f + 3)
+            pattern[f * pairs:(f + 1) * pairs, :self.clock_params] = 1
+            pattern[f * pairs:(f + 1) * pairs, position] = 1
+            base = count * pairs + f * channels
+            pattern[base:base + channels, position] = 1
+        return pattern
+
+    def solve(self, frames: np.ndarray, start: np.ndarray):
+        from scipy.optimize import least_squares
+
+        return least_squares(self.residuals, start, args=(frames,), jac_sparsity=self.sparsity(frames.size),
+                             loss="soft_l1", f_scale=self.config.loss_scale, method="trf", x_scale="jac",
+                             max_nfev=200)
+
+
+def _initial_positions(mics: np.ndarray, m: FrameMeasurements, frames: np.ndarray,
+                       config: ClockCalibrationConfig) -> np.ndarray:
+    """Per frame, a position from its reflection delays alone (each fixes the source's elevation seen from
+    one microphone) and the offset-free sign of its time differences, from a few starts."""
+    from scipy.optimize import least_squares
+
+    c = config.speed_of_sound
+    images = mics * [1, 1, -1] + [0, 0, 2 * config.ground_height]
+    centre = mics.mean(axis=0)
+    out = np.empty((frames.size, 3))
+    starts = [centre + v for v in ([0, 10, 8], [0, 10, 15], [5, 5, 10], [-5, 5, 10], [0, -10, 8], [5, 15, 5])]
+    for n, f in enumerate(frames):
+        target = m.reflection[f]
+
+        def residual(s: np.ndarray, target: np.ndarray = target) -> np.ndarray:
+            direct = np.linalg.norm(s - mics, axis=1)
+            return ((np.linalg.norm(s - images, axis=1) - direct) / c - target) / config.sigma
+
+        fits = [least_squares(residual, s0, loss="soft_l1", f_scale=config.loss_scale, max_nfev=50) for s0 in starts]
+        out[n] = min(fits, key=lambda r: r.cost).x
+    return out
+
+
+def estimate_clock_offsets(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibrationConfig()
+                           ) -> ClockCalibration:
+    """Estimate the nodes' clock offsets (node 0 = 0) of ``audio`` from its own sound (see the module docstring).
+
+    Raises:
+        ClockCalibrationError: no microphone positions, too short a recording or too few frames with a
+            coherent source, in one line.
+    """
+    mics = np.asarray(audio.mic_positions, dtype=np.float64)
+    if audio.num_channels < 2:
+        raise ClockCalibrationError(f"clock calibration needs at least 2 microphones, got {audio.num_channels}")
+    if not np.isfinite(mics).all() or not np.any(mics):
+        raise ClockCalibrationError("clock calibration needs the microphone positions (all zero or missing)")
+    m = measure(audio, config)
+    frames = np.flatnonzero((m.score >= config.min_peak) & np.isfinite(m.reflection).all(axis=1))
+    if frames.size < config.min_blocks:
+        raise ClockCalibrationError(f"clock calibration found a coherent source in {frames.size} blocks, needs "
+                                    f"{config.min_blocks}")
+    model = _Model(mics, m, config)
+    positions = _initial_positions(mics, m, frames, config)
+    clocks = np.zeros(model.clock_params)
+    fit = model.solve(frames, np.concatenate([clocks, positions.ravel()]))
+    theta = fit.x
+    n = audio.num_channels - 1
+    jack = _jackknife(model, frames, theta, config.jackknife_blocks)
+    std = np.full(model.clock_params, np.nan) if jack is None else jack
+    residual = fit.fun * config.sigma
+    rms = float(1.4826 * np.median(np.abs(residual - np.median(residual))))
+    drifts = np.concatenate([[0.0], theta[n:2 * n]]) if config.fit_drift else np.zeros(n + 1)
+    drift_std = np.concatenate([[0.0], std[n:2 * n]]) if config.fit_drift else np.zeros(n + 1)
+    return ClockCalibration(np.concatenate([[0.0], theta[:n]]), np.concatenate([[0.0], std[:n]]), drifts, drift_std,
+                            int(frames.size), rms, theta[model.clock_params:].reshape(-1, 3), m.times[frames])
+
+
+def _jackknife(model: _Model, frames: np.ndarray, theta: np.ndarray, blocks: int) -> np.ndarray | None:
+    """Delete-a-block jackknife standard errors of the clock parameters (warm-started refits)."""
+    if blocks < 2 or frames.size < 2 * blocks:
+        return None
+    k = model.clock_params
+    estimates = []
+    for block in np.array_split(np.arange(frames.size), blocks):
+        keep = np.setdiff1d(np.arange(frames.size), block)
+        start = np.concatenate([theta[:k], theta[k:].reshape(-1, 3)[keep].ravel()])
+        estimates.append(model.solve(frames[keep], start).x[:k])
+    estimates = np.array(estimates)
+    return np.sqrt((blocks - 1) / blocks * ((estimates - estimates.mean(axis=0)) ** 2).sum(axis=0))

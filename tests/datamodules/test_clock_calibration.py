@@ -1,0 +1,126 @@
+"""Clock self-calibration: offsets found from the audio alone, applied to the phase features, bad input refused."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from datamodules.errors import ConfigError
+from datamodules.features import PhaseWindows, phase_recipe
+from datamodules.features.clock_calibration import (
+    ClockCalibration,
+    ClockCalibrationConfig,
+    ClockCalibrationError,
+    estimate_clock_offsets,
+    wants_calibration,
+)
+from datamodules.recording import ArrayAudio
+from datamodules.simulate.acoustics import AudioConfig
+from datamodules.simulate.ambient import AmbientConfig
+from datamodules.simulate.clocks import resample_at_clock
+from datamodules.simulate.simulator import SimulationConfig, simulate_recording
+from datamodules.simulate.trajectory import TrajectoryConfig
+
+OFFSETS = np.array([0.0, 0.0, 0.8e-3, 0.0])  #: node 2 samples 0.8 ms late
+TOLERANCE = 5e-5  #: 0.05 ms
+CONFIG = ClockCalibrationConfig(jackknife_blocks=3)
+
+
+@pytest.fixture(scope="module")
+def shared_recording():
+    """12 s of a loud drone flying (no hover: the calibration needs the geometry to change) in quiet air, all
+    nodes on one clock."""
+    quiet = AmbientConfig(level_dba=(45.0, 45.0), wind_speed=(0.0, 0.0), hvac=False)
+    flying = TrajectoryConfig(hover_probability=0.0, cruise_speed_median=3.0, cruise_speed_sigma=0.1)
+    config = SimulationConfig(duration=12.0, drone="m300", camera=False, lidar_sensors=(), trajectory=flying,
+                              audio=dataclasses.replace(AudioConfig(), ambient=quiet))
+    return simulate_recording(config, seed=6)
+
+
+def late(audio: ArrayAudio, offsets: np.ndarray) -> ArrayAudio:
+    samples = resample_at_clock(audio.read(0, audio.num_samples), audio.sample_rate, offsets, np.zeros(len(offsets)))
+    return ArrayAudio(samples, audio.sample_rate, audio.t0, audio.mic_positions)
+
+
+def test_an_offset_on_one_node_is_found(shared_recording):
+    found = estimate_clock_offsets(late(shared_recording.audio, OFFSETS), CONFIG)
+    assert found.offsets_s[0] == 0.0
+    assert np.abs(found.offsets_s - OFFSETS).max() < TOLERANCE, found.summary()
+    assert np.all(np.isfinite(found.offsets_std_s)) and found.offsets_std_s.max() < TOLERANCE
+    assert found.frames >= 10 and "clock offsets (ms, node 0 = 0): +0.000" in found.summary()
+    again = ClockCalibration.from_array(found.to_array())
+    assert np.array_equal(again.offsets_s, found.offsets_s) and again.key() == found.key()
+
+
+def test_one_clock_gives_offsets_near_zero(shared_recording):
+    found = estimate_clock_offsets(shared_recording.audio, CONFIG)
+    assert np.abs(found.offsets_s).max() < TOLERANCE, found.summary()
+
+
+def test_the_correction_undoes_the_offset(shared_recording):
+    recipe = phase_recipe("gcc_phat")
+    audio = shared_recording.audio
+    times = audio.t0 + np.array([4.0, 8.0])
+    truth = ClockCalibration(OFFSETS, np.zeros(4), np.zeros(4), np.zeros(4), frames=0, residual_rms_s=0.0)
+    shared = np.stack([PhaseWindows(audio, recipe, times)(i) for i in range(2)])
+    moved = late(audio, OFFSETS)
+    raw = np.stack([PhaseWindows(moved, recipe, times)(i) for i in range(2)])
+    corrected = np.stack([PhaseWindows(moved, recipe, times, clocks=truth)(i) for i in range(2)])
+    assert np.abs(raw - shared).max() > 0.1  # the offset moves the pairs with node 2
+    assert np.abs(corrected - shared).max() < 0.1 * np.abs(raw - shared).max()
+
+
+def test_the_datamodule_switch_corrects_recordings_on_separate_clocks(shared_recording, tmp_path):
+    from datamodules.formats.mcap_file import write_mcap
+    from datamodules.mmaud import MMAUDDataModule
+
+    recording = dataclasses.replace(shared_recording, audio=late(shared_recording.audio, OFFSETS),
+                                    meta={**shared_recording.meta, "nodes_share_clock": False})
+    write_mcap(recording, tmp_path / "data" / "late.mcap")
+    write_mcap(shared_recording, tmp_path / "shared" / "shared.mcap")
+
+    def features(stem: str, mode: str) -> tuple[np.ndarray, str]:
+        folder = tmp_path / ("shared" if stem == "shared" else "data")
+        module = MMAUDDataModule([str(folder)], split={"train": [], "val": [], "test": [stem]},
+                                 inputs={"audio_phase": "gcc_phat"}, test_lights=["ideal"],
+                                 cache_dir=str(tmp_path / "cache"), clock_calibration=mode)
+        module.setup("test")
+        key = module.sequences["test"][0].feature_keys["audio_phase"]
+        return np.asarray(module.cache.open(key), dtype=np.float32), key
+
+    reference, _ = features("shared", "auto")  # one clock: auto leaves it as it is
+    raw, raw_key = features("late", "off")
+    corrected, key = features("late", "auto")
+    assert "-clk" in key and "-clk" not in raw_key
+
+    def peak_lags(features: np.ndarray) -> np.ndarray:  # each window's strongest lag per pair (frames averaged)
+        return features.mean(axis=2).argmax(axis=-1)
+
+    moved = [1, 3, 5]  # the pairs with node 2: (0, 2), (1, 2), (2, 3)
+    shift = 0.8e-3 * phase_recipe("gcc_phat").lag_rate  # 19.2 lags
+    raw_moves = np.abs(peak_lags(raw) - peak_lags(reference))[:, moved]
+    assert np.median(raw_moves) == pytest.approx(shift, abs=1.5)
+    assert np.median(np.abs(peak_lags(corrected) - peak_lags(reference))[:, moved]) <= 1
+    with pytest.raises(ConfigError, match="clock_calibration must be one of"):
+        MMAUDDataModule([str(tmp_path / "data")], inputs={"audio_phase": "gcc_phat"}, clock_calibration="yes")
+
+
+def test_modes():
+    assert wants_calibration("auto", {"nodes_share_clock": False}) and not wants_calibration("auto", {})
+    assert wants_calibration("on", {}) and not wants_calibration("off", {"nodes_share_clock": False})
+    with pytest.raises(ValueError, match="clock_calibration must be one of"):
+        wants_calibration("maybe", {})
+
+
+def test_bad_input_gives_one_line(shared_recording):
+    audio = shared_recording.audio
+    nowhere = ArrayAudio(audio.read(0, audio.num_samples), audio.sample_rate, audio.t0, np.zeros((4, 3)))
+    with pytest.raises(ClockCalibrationError, match="needs the microphone positions") as error:
+        estimate_clock_offsets(nowhere, CONFIG)
+    assert "\n" not in str(error.value)
+    short = ArrayAudio(audio.read(0, int(2 * audio.sample_rate)), audio.sample_rate, audio.t0, audio.mic_positions)
+    with pytest.raises(ClockCalibrationError, match=r"needs at least 10 blocks .* gives 5") as error:
+        estimate_clock_offsets(short, CONFIG)
+    assert "\n" not in str(error.value)
