@@ -11,15 +11,21 @@ from __future__ import annotations
 import hashlib
 from dataclasses import asdict, dataclass
 from functools import lru_cache
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import torch
 
 from datamodules.recording import AudioStream, RecordingError
 
-if TYPE_CHECKING:
-    from datamodules.features.clock_calibration import ClockCalibration
+
+class NodeClocks(Protocol):
+    """Estimated clock offsets of the nodes (:class:`datamodules.features.clock_calibration.ClockCalibration`)."""
+
+    offsets_s: np.ndarray
+    drifts_ppm: np.ndarray
+
+    def offsets_at(self, times: np.ndarray) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -248,7 +254,7 @@ class PhaseWindows:
     """
 
     def __init__(self, audio: AudioStream, recipe: PhaseRecipe, times: np.ndarray, source: str = "audio",
-                 clocks: ClockCalibration | None = None):
+                 clocks: NodeClocks | None = None):
         self.audio, self.recipe, self.times, self.source = audio, recipe, np.asarray(times, dtype=np.float64), source
         self.gcc = _gcc_phat(recipe, float(audio.sample_rate), audio.num_channels)
         self.clocks = clocks
