@@ -150,7 +150,8 @@ NON_MAC_OPS = frozenset({
     # search: ranking, rounding, masks and small bookkeeping (srp_phat)
     "topk", "sort", "round", "floor", "ceil", "bucketize", "bitwise_and", "bitwise_or", "bitwise_not", "any",
     "isnan", "nanmedian", "rsub", "remainder", "index_put_", "scalar_tensor", "_local_scalar_dense", "diagonal",
-    "eye", "squeeze_", "_linalg_check_errors", "max_pool1d", "all", "repeat", "flip", "cumsum",
+    "eye", "squeeze_", "_linalg_check_errors", "max_pool1d", "all", "repeat", "flip", "cumsum", "abs_",
+    "floor_divide", "remainder_", "take",
 })
 
 
