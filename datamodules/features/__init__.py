@@ -37,6 +37,7 @@ from datamodules.features.mel import (
 )
 from datamodules.features.phase import (
     PHASE_RECIPES,
+    SPEED_OF_SOUND,
     GccPhat,
     PhaseRecipe,
     PhaseWindows,
@@ -54,6 +55,7 @@ __all__ = [
     "MEL_RECIPES",
     "PHASE_RECIPES",
     "PUBLISHED_DARK_VALUE",
+    "SPEED_OF_SOUND",
     "GccPhat",
     "ImageRecipe",
     "IncrementalMel",

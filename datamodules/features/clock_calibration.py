@@ -35,14 +35,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from datamodules.features.phase import GccPhat, PhaseRecipe, mic_pairs
+from datamodules.features.phase import SPEED_OF_SOUND, GccPhat, PhaseRecipe, mic_pairs
 from datamodules.recording import AudioStream, RecordingError
 
 log = logging.getLogger(__name__)
-
-#: m/s: the speed of sound the phase nets steer with (zoo.nets.phase.steering.SPEED_OF_SOUND; not imported:
-#: imports go zoo -> datamodules)
-SPEED_OF_SOUND = 349.0
 
 
 #: when phase features correct the nodes' clocks: ``auto`` when the recording says its nodes do not share one
@@ -111,12 +107,6 @@ class ClockCalibration:
         return {"offsets_s": self.offsets_s.tolist(), "offsets_std_s": self.offsets_std_s.tolist(),
                 "drifts_ppm": self.drifts_ppm.tolist(), "drifts_std_ppm": self.drifts_std_ppm.tolist(),
                 "frames": int(self.frames), "residual_rms_s": float(self.residual_rms_s)}
-
-    @classmethod
-    def from_meta(cls, meta: dict[str, Any]) -> ClockCalibration:
-        arrays = {name: np.asarray(meta[name], dtype=np.float64)
-                  for name in ("offsets_s", "offsets_std_s", "drifts_ppm", "drifts_std_ppm")}
-        return cls(**arrays, frames=int(meta["frames"]), residual_rms_s=float(meta["residual_rms_s"]))
 
     def to_array(self) -> np.ndarray:
         """5 x nodes: offsets, their std, drifts, their std, then [frames, residual RMS, 0 ...] (for caches)."""
@@ -220,10 +210,10 @@ def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibratio
         def cross_of(spectra: torch.Tensor) -> torch.Tensor:
             return (spectra[gcc.first] * spectra[gcc.second].conj()).to(torch.complex128)
 
-        static = sum(cross_of(spectra_of(start)).mean(dim=1) for start in starts) / len(starts)
+        block_spectra = [spectra_of(start) for start in starts]  # each C x F x K, read and transformed once
+        static = sum(cross_of(spectra).mean(dim=1) for spectra in block_spectra) / len(starts)
         corr_blocks, cepstrum_blocks = [], []
-        for start in starts:
-            spectra = spectra_of(start)  # C x F x K
+        for spectra in block_spectra:
             cross = cross_of(spectra) - static[:, None, :]
             corr_blocks.append(gcc.correlate(cross).mean(dim=1).double())
             log_power = torch.log(spectra.abs().double() ** 2 + 1e-30)
@@ -274,12 +264,17 @@ def _parabolic(values: np.ndarray, index: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------ fit
 
 
+def _ground_images(mics: np.ndarray, ground_height: float) -> np.ndarray:
+    """The microphones' mirror images in the ground plane ``z = ground_height``."""
+    return mics * [1, 1, -1] + [0, 0, 2 * ground_height]
+
+
 class _Model:
     """Residuals of the joint fit: per frame a position, shared offsets (and drifts) of nodes 1.."""
 
     def __init__(self, mics: np.ndarray, m: FrameMeasurements, config: ClockCalibrationConfig):
         self.mics, self.m, self.config = mics, m, config
-        self.images = mics * [1, 1, -1] + [0, 0, 2 * config.ground_height]
+        self.images = _ground_images(mics, config.ground_height)
         self.channels = mics.shape[0]
         pairs = mic_pairs(self.channels)
         self.first = np.array([i for i, _ in pairs])
@@ -333,7 +328,7 @@ def _initial_positions(mics: np.ndarray, m: FrameMeasurements, frames: np.ndarra
     from scipy.optimize import least_squares
 
     c = config.speed_of_sound
-    images = mics * [1, 1, -1] + [0, 0, 2 * config.ground_height]
+    images = _ground_images(mics, config.ground_height)
     centre = mics.mean(axis=0)
     out = np.empty((frames.size, 3))
     starts = [centre + v for v in ([0, 10, 8], [0, 10, 15], [5, 5, 10], [-5, 5, 10], [0, -10, 8], [5, 15, 5])]

@@ -18,6 +18,11 @@ import torch
 
 from datamodules.recording import AudioStream, RecordingError
 
+#: m/s: the speed of sound in air at 30 C (MMAUD V1, Singapore), the simulator's
+#: ``datamodules.simulate.propagation.speed_of_sound(30.0)`` = 349.02 m/s, rounded as the configs state it;
+#: the phase nets steer with it and the clock calibration fits with it
+SPEED_OF_SOUND = 349.0
+
 
 class NodeClocks(Protocol):
     """Estimated clock offsets of the nodes (:class:`datamodules.features.clock_calibration.ClockCalibration`)."""

@@ -38,7 +38,7 @@ import yaml
 from torch import nn
 
 from datamodules.errors import ConfigError
-from datamodules.features import IncrementalPhase, PhaseRecipe
+from datamodules.features import SPEED_OF_SOUND, IncrementalPhase, PhaseRecipe
 from datamodules.streams import AudioSource
 from zoo.deploy.tracking import (
     HOP_SECONDS,
@@ -184,7 +184,7 @@ def check_geometry(model: PhaseTrackingModel, source: AudioSource) -> np.ndarray
         raise TrackingError(f"{source.name}: sample rate {source.sample_rate:g} Hz; model {model.name!r} reads "
                             f"the band up to {model.recipe.f_max:g} Hz of recipe {model.recipe.name!r}, so it "
                             f"needs at least {2 * model.recipe.f_max:g} Hz")
-    speed = float(getattr(model.net.steering, "speed_of_sound", 349.0))
+    speed = float(getattr(model.net.steering, "speed_of_sound", SPEED_OF_SOUND))
     distances = np.linalg.norm(mics[:, None] - mics[None], axis=-1)
     aperture = float(distances.max())
     if aperture / speed > model.recipe.max_delay:

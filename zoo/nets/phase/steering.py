@@ -21,12 +21,9 @@ from typing import NamedTuple
 
 import torch
 
-from datamodules.features import PhaseRecipe, mic_pairs, pair_indices
+from datamodules.features import SPEED_OF_SOUND, PhaseRecipe, mic_pairs, pair_indices
 from datamodules.simulate.microphones import mic_geometry
 
-#: m/s: the speed of sound in air at 30 C (MMAUD V1, Singapore), the simulator's
-#: ``datamodules.simulate.propagation.speed_of_sound(30.0)`` = 349.02 m/s, rounded as the configs state it
-SPEED_OF_SOUND = 349.0
 #: half-widths (in lags) of the max-pooled correlations the cube responses read
 POOL_WIDTHS = (0, 1, 2, 4, 8, 16, 32, 64)
 
