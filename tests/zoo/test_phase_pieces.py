@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
-from datamodules.features import mic_pairs, phase_recipe
+from datamodules.features import GccPhat, mic_pairs, phase_recipe, split_frames
+from zoo.nets.phase import null
 from zoo.nets.phase.cubes import CubeColumns
 from zoo.nets.phase.gate import DetectionGate
 from zoo.nets.phase.null import white_noise_correlations
@@ -47,6 +49,14 @@ def test_white_noise_correlations_are_seeded_and_shaped_per_window_and_frame():
     assert torch.equal(made, white_noise_correlations(RECIPE, 3, windows=2, frames=4))
     assert not torch.equal(made, white_noise_correlations(RECIPE, 3, windows=2, frames=4, seed=1))
     assert float(made.abs().max()) < 0.7  # nothing coherent: a coherent source scores near 1
+
+
+def test_white_noise_correlations_do_not_depend_on_how_many_windows_are_transformed_at_once(monkeypatch):
+    gcc = GccPhat(RECIPE, null.NULL_SAMPLE_RATE, 3)
+    noise = np.random.default_rng(5).standard_normal((3, 5 * 4 * gcc.frame))  # the draws of one array
+    expected = gcc.correlate(gcc.cross_spectra(split_frames(noise, gcc.frame, 20))).reshape(3, 5, 4, -1)
+    monkeypatch.setattr(null, "CHUNK_WINDOWS", 2)  # chunks of 2, 2 and 1 windows
+    assert torch.allclose(null.white_noise_correlations(RECIPE, 3, windows=5, frames=4, seed=5), expected, atol=1e-6)
 
 
 def test_the_gate_confirms_holds_then_falls_back_and_restarts_a_sequence_that_goes_back():

@@ -14,6 +14,8 @@ from datamodules.features import GccPhat, PhaseRecipe, split_frames
 
 #: Hz: the rate the white noise is made at by default (the simulator's and MMAUD's audio rate)
 NULL_SAMPLE_RATE = 48000.0
+#: windows transformed at once (each frame's transform is independent, so the result does not depend on it)
+CHUNK_WINDOWS = 16
 
 
 def white_noise_correlations(recipe: PhaseRecipe, channels: int, windows: int, frames: int,
@@ -29,8 +31,13 @@ def white_noise_correlations(recipe: PhaseRecipe, channels: int, windows: int, f
         seed: the noise generator's seed (``numpy.random.default_rng``).
     """
     gcc = GccPhat(recipe, sample_rate, channels)
-    noise = np.random.default_rng(seed).standard_normal((channels, windows * frames * gcc.frame))
-    framed = split_frames(noise.astype(np.float32), gcc.frame, windows * frames)
-    with torch.no_grad():
-        correlation = gcc.correlate(gcc.cross_spectra(framed))  # pairs x (windows * frames) x lags
+    rng = np.random.default_rng(seed)  # channel by channel: the same draws as one (channels x samples) array
+    noise = np.stack([rng.standard_normal(windows * frames * gcc.frame).astype(np.float32) for _ in range(channels)])
+    framed = split_frames(noise, gcc.frame, windows * frames).reshape(channels, windows, frames, gcc.frame)
+    chunks = []
+    with torch.no_grad():  # a few windows at a time: the zero-padded FFTs of all of them would take gigabytes
+        for start in range(0, windows, CHUNK_WINDOWS):
+            chunk = framed[:, start:start + CHUNK_WINDOWS].reshape(channels, -1, gcc.frame)
+            chunks.append(gcc.correlate(gcc.cross_spectra(chunk)))  # pairs x (chunk windows * frames) x lags
+    correlation = torch.cat(chunks, dim=1)
     return correlation.reshape(correlation.shape[0], windows, frames, -1)
