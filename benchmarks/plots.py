@@ -89,29 +89,31 @@ def save_png(figure: Figure, path: Path) -> bytes:
     return data
 
 
-def trajectory_figure(model: pd.DataFrame, constant: pd.DataFrame | None, title: str,
-                      model_label: str) -> Figure:
-    """x, y, z against time and a top view (x-y) of one flight: ground truth, estimate, smoothed, constant.
+def trajectory_figure(methods: Sequence[tuple[str, pd.DataFrame]], constant: pd.DataFrame | None,
+                      title: str) -> Figure:
+    """x, y, z against time and a top view (x-y) of one flight: ground truth, each method's estimate (the first
+    one's smoothed estimate too) and the constant.
 
     Args:
-        model: the model's prediction windows of one sequence and light condition.
+        methods: (legend name, prediction windows of one sequence and light condition), best first; the ground
+            truth is read from the first.
         constant: the constant predictor's windows of the same sequence (None: not drawn).
         title: the figure title.
-        model_label: legend name of the model.
     """
     figure = Figure(figsize=(10, 6.5))
     figure.subplots_adjust(**{**MARGINS, "left": 0.07, "top": 0.91}, hspace=0.32, wspace=0.2)
     axes = figure.subplots(2, 2)
-    model = model.sort_values("timestamp")
-    t0 = float(model["timestamp"].min())
-    gt = model[model["gt_valid"].astype(float) > 0]
-    smoothed = model["smooth_x"].notna().any()
-    line = {"color": "C0", "linewidth": 0.8, "marker": ".", "markersize": 2.5}
+    methods = [(label, frame.sort_values("timestamp")) for label, frame in methods]
+    first_label, first = methods[0]
+    t0 = float(first["timestamp"].min())
+    gt = first[first["gt_valid"].astype(float) > 0]
     series = [  # (label, windows, x/y/z columns, style against time, style in the top view)
-        ("ground truth", gt, ("gt_x", "gt_y", "gt_z"), {"color": "black", "linewidth": 1.6}, None),
-        (model_label, model, ("x", "y", "z"), line, None)]
-    if smoothed:
-        series.append((f"{model_label}, GP-smoothed", model, ("smooth_x", "smooth_y", "smooth_z"),
+        ("ground truth", gt, ("gt_x", "gt_y", "gt_z"), {"color": "black", "linewidth": 1.6}, None)]
+    for index, (label, frame) in enumerate(methods):
+        series.append((label, frame, ("x", "y", "z"), {"color": f"C{2 * index}", "linewidth": 0.8, "marker": ".",
+                                                       "markersize": 2.5}, None))
+    if first["smooth_x"].notna().any():
+        series.append((f"{first_label}, smoothed", first, ("smooth_x", "smooth_y", "smooth_z"),
                        {"color": "C1", "linewidth": 1.4}, None))
     if constant is not None and len(constant):
         point = {"color": REFERENCE_STYLE["color"], "linestyle": "none", "marker": "X", "markersize": 9}
@@ -131,7 +133,7 @@ def trajectory_figure(model: pd.DataFrame, constant: pd.DataFrame | None, title:
     top.set_title("top view")
     top.set_aspect("equal", adjustable="datalim")
     top.grid(alpha=0.3)
-    axes.flat[0].legend(fontsize=8, loc="best")
+    axes.flat[0].legend(fontsize=7, loc="best")
     figure.suptitle(title, fontsize=10)
     return figure
 
@@ -276,19 +278,30 @@ class SectionPlotter:
         return Plot(path, caption, save_png(figure, path))
 
     def trajectories(self, stats: pd.DataFrame, number: int, protocol: str) -> list[Plot]:
-        """One figure per drone: a test flight of the best model (lowest ideal E) beside the constant."""
+        """One figure per drone: a test flight of the methods of interest (per category, the best, lowest ideal
+        E, with predictions: the best published baseline, self-supervised and non-learned model) beside the
+        constant."""
         what = f"trajectory plots (Table {number})"
         candidates = stats[(stats["kind"] == "model") & ~stats["reference"] & stats["E_ideal_mean"].notna()]
         if candidates.empty:
             self.warn(f"{what} skipped: no model with an ideal-light E")
             return []
-        best = candidates.loc[candidates["E_ideal_mean"].idxmin()]
-        model = self.predictions(best)
-        if isinstance(model, str):
-            self.warn(f"{what} skipped: the best model, {best['display']}: {model}")
+        methods, categories = [], set()
+        for _, stat in candidates.sort_values("E_ideal_mean").iterrows():  # best first
+            if stat["category"] in categories:
+                continue
+            frame = self.predictions(stat)
+            if isinstance(frame, str):
+                self.warn(f"{what}: {stat['display']} left out: {frame}")
+            else:
+                methods.append((stat, frame))
+                categories.add(stat["category"])
+        if not methods:
+            self.warn(f"{what} skipped: no method of interest has predictions")
             return []
-        light = "ideal" if (model["light"] == "ideal").any() else str(model["light"].iloc[0])
-        model = model[model["light"] == light]
+        first = methods[0][1]
+        light = "ideal" if (first["light"] == "ideal").any() else str(first["light"].iloc[0])
+        methods = [(stat, frame[frame["light"] == light]) for stat, frame in methods]
         constants = stats[stats["kind"] == "constant"]
         constant = self.predictions(constants.iloc[0]) if len(constants) else "no constant row in the table"
         if isinstance(constant, str):
@@ -296,17 +309,18 @@ class SectionPlotter:
             constant = None
         else:
             constant = constant[constant["light"] == light]
+        names = ", ".join(f"{stat['display']} (seed {stat['predictions_seed']:g})" for stat, _ in methods)
         plots = []
-        for drone, flights in model.groupby("drone", sort=True):
+        for drone, flights in methods[0][1].groupby("drone", sort=True):
             sequence = flights.groupby("sequence_id").size().sort_index().idxmax()  # the longest flight
-            flight = flights[flights["sequence_id"] == sequence]
+            drawn = [(str(stat["display"]), frame[frame["sequence_id"] == sequence]) for stat, frame in methods]
+            drawn = [(label, frame) for label, frame in drawn if len(frame)]
             reference = None if constant is None else constant[constant["sequence_id"] == sequence]
-            title = (f"{drone}, test flight {sequence} ({light} light): {best['display']} "
-                     f"(seed {best['predictions_seed']:g}), protocol {protocol}")
-            figure = trajectory_figure(flight, reference, title, best["display"])
-            caption = (f"Estimated and true trajectory of one test flight of the {drone} ({light} light) for "
-                       f"the best model of Table {number}, {best['display']}, beside the constant predictor: "
-                       "x, y, z against time and a top view.")
+            title = f"{drone}, test flight {sequence} ({light} light), protocol {protocol}"
+            figure = trajectory_figure(drawn, reference, title)
+            caption = (f"Estimated and true trajectory of one test flight of the {drone} ({light} light) for the "
+                       f"best method of each category of Table {number}, {names}, beside the constant predictor "
+                       f"(the best one's smoothed estimate too): x, y, z against time and a top view.")
             plots.append(self.save(figure, f"trajectory_{re.sub(r'[^A-Za-z0-9_.-]+', '_', str(drone))}.png",
                                    caption))
         return plots

@@ -297,6 +297,21 @@ def test_plots_written_and_missing_predictions_warned(report):
     assert any("error CDF (Table 2) skipped" in warning for warning in report.warnings)  # no files there
 
 
+def test_trajectory_plots_draw_the_best_method_of_each_category(results_csv, tmp_path):
+    frame = pd.read_csv(results_csv)
+    frame.loc[frame["job_id"] == "srp_phat-by_sequence-s0", "predictions_path"] = "pred/srp_phat-s0.csv"
+    frame.to_csv(results_csv, index=False)
+    write_predictions(results_csv.parent / "pred" / "srp_phat-s0.csv", 2.0)
+    report = leaderboard.render_leaderboard(results_csv, tmp_path / "board")
+    caption = report.markdown.split("![Estimated and true trajectory of one test flight of the avata", 1)[1]
+    caption = caption.split("](plots/", 1)[0]
+    # the best self-supervised (student, seed 0) before the best non-learned; VisualNet, the best supervised
+    # model, has no predictions and AudioNet's file is missing: both are left out with a warning
+    assert "Ours (student) (seed 0), SRP_PHAT (grid 1 m, 100% of pairs) (seed 0)" in caption
+    for name in ("VisualNet", "AudioNet"):
+        assert any(f"trajectory plots (Table 1): {name} left out" in warning for warning in report.warnings)
+
+
 def test_missing_prediction_files_skip_plots_not_tables(results_csv, tmp_path, caplog):
     for path in (results_csv.parent / "pred").glob("*.csv"):
         path.unlink()
