@@ -118,3 +118,75 @@ def test_a_capped_delay_fit_has_its_own_threshold_key_and_the_default_keeps_the_
     assert default.threshold_key(mics) == explicit.threshold_key(mics) != capped.threshold_key(mics)
     with pytest.raises(ValueError, match="fit_steps"):
         get_model("srp_phat", fit_steps=0)
+
+
+def test_the_normal_equations_solved_by_cofactors_equal_a_damped_lu_solve():
+    import numpy as np
+
+    from zoo.nets.phase.search import FIT_DAMPING, solve_normal
+
+    rng = np.random.default_rng(0)
+    jacobian = rng.normal(size=(50, 6, 3)) * np.array([1.0, 10.0, 100.0])  # scales as far as the fit sees
+    residual = rng.normal(size=(50, 6, 1))
+    matrix = jacobian.transpose(0, 2, 1) @ jacobian
+    normal = np.concatenate([matrix, jacobian.transpose(0, 2, 1) @ residual], axis=2)  # M x 3 x 4
+    damped = matrix + np.trace(matrix, axis1=1, axis2=2)[:, None, None] * FIT_DAMPING / 3 * np.eye(3)
+    expected = np.linalg.solve(damped, -normal[..., 3:])[..., 0]
+    got = solve_normal(np.ascontiguousarray(normal.transpose(1, 2, 0)).astype(np.float32))  # 3 x M
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got.T, expected, rtol=1e-3, atol=1e-6 * np.abs(expected).max())
+
+
+def test_the_delay_fit_reaches_the_source_and_equals_a_per_candidate_lu_fit():
+    import numpy as np
+
+    from datamodules.features import pair_indices
+    from zoo.nets.phase.search import FIT_DAMPING, FIT_MAX_STEP, CandidateSearch
+
+    mics = torch.tensor([[0.0, 0.0, 0.2], [3.0, 0.0, 0.7], [0.0, 3.0, 1.2], [3.0, 3.0, 1.7]], dtype=torch.float64)
+    steering = Steering(phase_recipe("gcc_phat_2s_static"))
+    region = torch.tensor([[-2.0, 8.0], [-5.0, 25.0], [0.5, 25.0]])
+    search = CandidateSearch(steering, region)
+    source = torch.tensor([4.0, 9.0, 6.0])
+    start = (source + torch.randn(2, 5, 3, generator=torch.Generator().manual_seed(1))).float()  # N x K x 3
+    measured = steering.lag_positions(source.expand(2, 5, 3).float(), mics, direct_only=True).numpy()
+    weight = np.ones_like(measured)
+    fitted = search._gauss_newton(start.numpy(), measured, weight, mics)
+    np.testing.assert_allclose(fitted, source.expand(2, 5, 3).numpy(), atol=1e-2)
+    # the same steps one candidate at a time with numpy's LU solve, in float64
+    first, second = (index.numpy() for index in pair_indices(4))
+    scale = steering.recipe.lag_rate / steering.speed_of_sound
+    half = (steering.recipe.num_lags() - 1) // 2
+    points = start.double().numpy().reshape(-1, 3)
+    for _ in range(search.fit_steps):
+        for i, point in enumerate(points):
+            direction = point - mics.numpy()
+            distance = np.linalg.norm(direction, axis=1)
+            unit = direction / distance[:, None]
+            jacobian = scale * (unit[first] - unit[second])
+            residual = scale * (distance[first] - distance[second]) + half - measured.reshape(-1, 6)[i]
+            matrix = jacobian.T @ jacobian
+            matrix += np.trace(matrix) * FIT_DAMPING / 3 * np.eye(3)
+            step = np.clip(np.linalg.solve(matrix, -jacobian.T @ residual), -FIT_MAX_STEP, FIT_MAX_STEP)
+            points[i] = np.clip(point + step, region[:, 0].numpy(), region[:, 1].numpy())
+    np.testing.assert_allclose(fitted.reshape(-1, 3), points, atol=2e-3)
+
+
+def test_term_differences_by_a_signed_matrix_equal_the_columns_differences_bit_for_bit():
+    steering = Steering(phase_recipe("gcc_phat_2s_static"))
+    mics = torch.tensor([[0.0, 0.0, 0.2], [3.0, 0.0, 0.7], [0.0, 3.0, 1.2], [3.0, 3.0, 1.7]], dtype=torch.float64)
+    terms = steering.terms(4)
+    width = steering.recipe.lag_rate / steering.recipe.f_max
+    for dtype in (torch.float32, torch.float64):
+        points = (torch.rand(500, 3, generator=torch.Generator().manual_seed(2)) * 20 - 5).to(dtype)
+        virtual = steering.virtual_mics(mics).to(dtype)
+        distance = torch.cdist(points, virtual)
+        expected = ((distance[:, terms.first] - distance[:, terms.second]) / steering.speed_of_sound
+                    * steering.recipe.lag_rate + (steering.recipe.num_lags() - 1) // 2)
+        position = steering._lag_columns(distance, terms.first, terms.second)
+        assert torch.equal(position, expected)
+        grouped = position.reshape(-1, 4, 6)
+        keep = [torch.ones(500, 6, dtype=torch.bool)]
+        for later in range(1, 4):
+            keep.append(torch.stack([(grouped[:, later] - grouped[:, e]).abs() > width for e in range(later)]).all(0))
+        assert torch.equal(steering.distinct(position, 4), torch.stack(keep, dim=1).reshape(500, 24))

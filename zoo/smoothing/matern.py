@@ -15,6 +15,9 @@ import math
 import numpy as np
 import torch
 
+#: the identity of the state (read only: every use makes a new array from it)
+_EYE3 = np.eye(3)
+
 
 def matern52_nilpotent(lengthscale: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """lam = sqrt(5) / lengthscale (B,), the nilpotent N = F + lam I (B, 3, 3) of the SDE and N^2."""
@@ -29,7 +32,7 @@ def matern52_nilpotent(lengthscale: np.ndarray) -> tuple[np.ndarray, np.ndarray,
 def matern52_transition(dt: np.ndarray, lam: np.ndarray, nil: np.ndarray, nil2: np.ndarray) -> np.ndarray:
     """exp(F dt) = exp(-lam dt) (I + N dt + N^2 dt^2 / 2) per step and axis, (n, B, 3, 3)."""
     d = dt[:, None, None, None]
-    return np.exp(-lam[None, :, None, None] * d) * (np.eye(3) + nil * d + nil2 * (d * d / 2.0))
+    return np.exp(-lam[None, :, None, None] * d) * (_EYE3 + nil * d + nil2 * (d * d / 2.0))
 
 
 def matern52_model(

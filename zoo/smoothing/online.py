@@ -116,18 +116,19 @@ class OnlineSmoother:
         dof = self.hyperparameters.dof
         mean, var = np.empty_like(ys), np.empty_like(ys)
         for _ in range(self.iterations):
-            diagonal = np.arange(len(w))
             for axis in range(3):
                 noise = self._noise[axis] / w
                 system = cov[axis].copy()
-                system[diagonal, diagonal] += noise
-                factor, info = lapack.dpotrf(system, lower=1, overwrite_a=1)
+                system.ravel()[:: len(w) + 1] += noise  # the diagonal, as a view
+                factor, info = lapack.dpotrf(system, lower=1, overwrite_a=1, clean=1)
                 if info != 0:
                     raise np.linalg.LinAlgError(f"window covariance not positive definite (dpotrf info {info})")
                 alpha, _ = lapack.dpotrs(factor, resid[:, axis], lower=1)
-                inverse, _ = lapack.dpotri(factor, lower=1, overwrite_c=1)
+                # the inverse's diagonal alone: the column norms of the factor's inverse (L^-T L^-1), half
+                # the work of forming the whole inverse
+                lower_inverse, _ = lapack.dtrtri(factor, lower=1, overwrite_c=1)
                 mean[:, axis] = ys[:, axis] - noise * alpha
-                var[:, axis] = noise - noise * noise * inverse[diagonal, diagonal]
+                var[:, axis] = noise - noise * noise * np.einsum("ki,ki->i", lower_inverse, lower_inverse)
             sq = (((ys - mean) ** 2 + var) / self._noise).sum(axis=1)
             w = (dof + 3.0) / (dof + sq)
         self._weights = list(w)

@@ -13,6 +13,7 @@ thousands of cubes. The blocks are exactly what :meth:`Steering.columns` gives f
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from datamodules.features import mic_pairs
@@ -46,9 +47,27 @@ class CubeColumns:
         #: the pooled correlations' columns, the zero one last: a column of -1 (reads nothing) is stored as it
         self.width = len(POOL_WIDTHS) * len(mic_pairs(mics.shape[0])) * steering.recipe.num_lags() + 1
         self.blocks = torch.empty((self.capacity, CHILDREN, terms), dtype=torch.long)  #: per slot, the columns
-        self.slots: dict[tuple[int, int], int] = {}  #: (level, parent name) -> its slot
+        #: per refinement level, each parent name's slot (-1: not held), grown as larger names arrive
+        self._slot_of: dict[int, torch.Tensor] = {}
+        self.used = 0  #: slots filled
         self.hits = 0  #: parents read from the table
         self.misses = 0  #: parents computed
+
+    @property
+    def slots(self) -> dict[tuple[int, int], int]:
+        """The parents held: (level, parent name) -> slot."""
+        return {(level, int(name)): int(table[name]) for level, table in self._slot_of.items()
+                for name in torch.nonzero(table >= 0)[:, 0]}
+
+    def _table(self, level: int, size: int) -> torch.Tensor:
+        """The level's name -> slot table, at least ``size`` long."""
+        table = self._slot_of.get(level)
+        if table is None or table.shape[0] < size:
+            grown = torch.full((max(size, 2 * (0 if table is None else table.shape[0])),), -1, dtype=torch.long)
+            if table is not None:
+                grown[:table.shape[0]] = table
+            table = self._slot_of[level] = grown
+        return table
 
     def children(self, level: int, parents: torch.Tensor, centres: torch.Tensor, sides: torch.Tensor
                  ) -> torch.Tensor:
@@ -56,18 +75,25 @@ class CubeColumns:
         ``level``, whose cubes are ``centres`` (M x 27 x 3) and ``sides`` (M x 27): :meth:`Steering.columns`
         of those cubes, the zero column as its index rather than -1. The cubes are read only for parents
         not yet in the table."""
-        names = [(level, parent) for parent in parents.tolist()]
-        new = list(dict.fromkeys(name for name in names if name not in self.slots))
-        if len(self.slots) + len(new) > self.capacity:  # full: start afresh with what this call needs
-            self.slots.clear()
-            new = list(dict.fromkeys(names))
-        if new:
-            rows = torch.tensor([names.index(name) for name in new])
+        table = self._table(level, int(parents.max()) + 1)
+        slots = table[parents]
+        missing, fresh = slots < 0, 0
+        if bool(missing.any()):
+            names = parents.numpy()
+            new, first = np.unique(names[missing.numpy()], return_index=True)
+            rows = np.flatnonzero(missing.numpy())[first]  # each new parent's first row
+            if self.used + len(new) > self.capacity:  # full: start afresh with what this call needs
+                for held in self._slot_of.values():
+                    held.fill_(-1)
+                self.used = 0
+                new, rows = np.unique(names, return_index=True)
             cubes = centres[rows].reshape(-1, 3)
             computed = self.steering.columns(cubes, self.mics, sides[rows].reshape(-1, 1)).remainder_(self.width)
-            first = len(self.slots)
-            self.blocks[first:first + len(new)] = computed.reshape(len(new), CHILDREN, -1)
-            self.slots.update((name, first + i) for i, name in enumerate(new))
-        self.misses += len(new)
-        self.hits += len(names) - len(new)
-        return self.blocks.index_select(0, torch.tensor([self.slots[name] for name in names]))
+            self.blocks[self.used:self.used + len(new)] = computed.reshape(len(new), CHILDREN, -1)
+            table[torch.from_numpy(new)] = torch.arange(self.used, self.used + len(new))
+            self.used += len(new)
+            fresh = len(new)
+            slots = table[parents]
+        self.misses += fresh
+        self.hits += len(parents) - fresh
+        return self.blocks.index_select(0, slots)

@@ -36,6 +36,31 @@ FIT_TOLERANCE = 1e-3
 OFFSETS = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)
 
 
+#: the symmetric 3 x 3 matrix's cofactors c00 c01 c02 c11 c12 c22 as f0 * f1 - f2 * f3 of its entries, indexed
+#: in the flattened 3 x 4 block [A | b] (a00 0, a01 1, a02 2, a11 5, a12 6, a22 10)
+COFACTORS = np.array([[5, 2, 1, 0, 1, 0], [10, 6, 6, 10, 2, 5], [6, 1, 2, 2, 0, 1], [6, 10, 5, 2, 6, 1]])
+#: the cofactor matrix (3 x 3) from the six distinct cofactors
+COFACTOR_MATRIX = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+
+
+def solve_normal(normal: np.ndarray) -> np.ndarray:
+    """Damped Gauss-Newton steps (3 x M, float32) from normal equations (3 x 4 x M: J'WJ beside J'Wr).
+
+    The diagonal is raised by ``FIT_DAMPING / 3`` of the trace (in place), then ``-(J'WJ)^-1 J'Wr`` is
+    taken by the cofactors (Cramer's rule) in float64: a handful of whole-row operations instead of a
+    batched LU solve, the same values to float rounding.
+    """
+    count = normal.shape[-1]
+    diagonal = normal.reshape(12, count)[0:11:5]  # a00 a11 a22 (a view)
+    diagonal += np.add.reduce(diagonal, axis=0) * np.float32(FIT_DAMPING / 3)
+    entries = normal.reshape(12, count).astype(np.float64)
+    factors = entries[COFACTORS]  # 4 x 6 x M
+    cofactors = factors[0] * factors[1] - factors[2] * factors[3]
+    determinant = np.add.reduce(entries[:3] * cofactors[:3], axis=0)
+    step = np.add.reduce(cofactors[COFACTOR_MATRIX] * entries[3:12:4], axis=1) / -determinant
+    return step.astype(np.float32)
+
+
 def best_candidates(points: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per frame, the candidate (B x F x 3) of highest ``values`` (B x F x K) among ``points``
     (B x F x K x 3), and that value (B x F)."""
@@ -209,44 +234,48 @@ class CandidateSearch:
     def _gauss_newton(self, points: np.ndarray, measured: np.ndarray, weight: np.ndarray, mics: torch.Tensor
                       ) -> np.ndarray:
         """The damped Gauss-Newton steps of :meth:`fit_delays`: points (N x K x 3) fitted to the measured
-        direct lag columns (N x K x pairs) with weights (N x K x pairs), float32. In numpy: its operations
-        on these few hundred numbers cost a fraction of torch's."""
+        direct lag columns (N x K x pairs) with weights (N x K x pairs), float32.
+
+        In numpy, each quantity a row over the candidates (coordinate-major, so every operation runs on
+        contiguous rows) and the normal equations solved in closed form (:func:`solve_normal`): at these few
+        hundred numbers per step the operations' overhead, not their arithmetic, is the cost.
+        """
         shape = points.shape
         first, second = (index.numpy() for index in pair_indices(mics.shape[0]))
-        m = mics.numpy().astype(points.dtype)
+        m = mics.numpy().astype(np.float32)[:, :, None]  # C x 3 x 1
+        channels, pairs = m.shape[0], len(first)
         scale = np.float32(self.steering.recipe.lag_rate / self.steering.speed_of_sound)
         half = np.float32((self.steering.recipe.num_lags() - 1) // 2)
-        low, high = self._low.numpy(), self._high.numpy()
-        damping, largest = np.float32(FIT_DAMPING / 3), np.float32(FIT_MAX_STEP)
-        points = points.reshape(-1, 3)
-        measured = measured.reshape(points.shape[0], -1)
-        weight = weight.reshape(points.shape[0], -1, 1)
-        unit_range = np.empty((points.shape[0], m.shape[0], 4), dtype=np.float32)  # unit vector, distance
-        diagonal = np.arange(3)
+        low, high = self._low.numpy()[:, None], self._high.numpy()[:, None]
+        largest = np.float32(FIT_MAX_STEP)
+        difference = np.zeros((pairs, channels), dtype=np.float32)  # pair lag column = difference @ distances
+        difference[np.arange(pairs), first], difference[np.arange(pairs), second] = scale, -scale
+        points = np.ascontiguousarray(points.reshape(-1, 3).T)  # 3 x M
+        count = points.shape[1]
+        target = np.ascontiguousarray(measured.reshape(count, pairs).T) - half  # P x M
+        weight = np.ascontiguousarray(weight.reshape(count, pairs).T)[:, None]  # P x 1 x M
+        unit_range = np.empty((channels, 4, count), dtype=np.float32)  # per mic: unit vector to the point, distance
+        direction, distance = unit_range[:, :3], unit_range[:, 3]
         for _ in range(self.fit_steps):
-            direction = points[:, None, :] - m  # M x C x 3
-            distance = np.sqrt(np.add.reduce(direction * direction, axis=-1))
+            np.subtract(points, m, out=direction)
+            np.sqrt(np.add.reduce(np.square(direction), axis=1), out=distance)
             np.maximum(distance, np.float32(1e-6), out=distance)
-            np.divide(direction, distance[..., None], out=unit_range[..., :3])
-            unit_range[..., 3] = distance
-            # per pair: the Jacobian of its lag column (3) and its residual, from the differences of the two
-            jacobian = unit_range[:, first] - unit_range[:, second]  # M x P x 4
-            jacobian *= scale
-            residual = jacobian[..., 3]
-            residual += half
-            residual -= measured
-            normal = (jacobian[..., :3] * weight).transpose(0, 2, 1) @ jacobian  # M x 3 x 4: J'WJ | J'Wr
-            matrix = normal[..., :3]
-            trace = np.add.reduce(matrix[:, diagonal, diagonal], axis=-1, keepdims=True)
-            matrix[:, diagonal, diagonal] += trace * damping
-            step = np.linalg.solve(matrix, -normal[..., 3:])[..., 0]
+            direction /= distance[:, None]
+            # per pair: the Jacobian of its lag column (rows 0-2) and its residual (row 3)
+            jacobian = (difference @ unit_range.reshape(channels, -1)).reshape(pairs, 4, count)
+            jacobian[:, 3] -= target
+            weighted = jacobian[:, :3] * weight
+            normal = np.add.reduce(weighted[:, :, None] * jacobian[:, None], axis=0)  # 3 x 4 x M: J'WJ | J'Wr
+            step = solve_normal(normal)
+            np.minimum(np.maximum(step, -largest, out=step), largest, out=step)
+            step += points
             # np.minimum / np.maximum: np.clip's same values behind several layers of Python
-            moved = np.minimum(np.maximum(points + np.minimum(np.maximum(step, -largest), largest), low), high)
+            moved = np.minimum(np.maximum(step, low, out=step), high, out=step)
             converged = float(np.maximum.reduce(np.abs(moved - points), axis=None)) < FIT_TOLERANCE
             points = moved
             if converged:
                 break
-        return points.reshape(shape)
+        return np.ascontiguousarray(points.T).reshape(shape)
 
     def fitted_candidates(self, correlation: torch.Tensor, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Every frame's ``frame_candidates`` fitted points (B x F x K x 3) and their exact responses

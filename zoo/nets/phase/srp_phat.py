@@ -57,7 +57,7 @@ log = logging.getLogger(__name__)
 #: null windows searched at once while setting a threshold
 NULL_BATCH = 64
 #: bumped whenever the search changes what it finds, so stored thresholds of older code are not reused
-THRESHOLD_VERSION = 3
+THRESHOLD_VERSION = 4
 
 
 @register_model("srp_phat")

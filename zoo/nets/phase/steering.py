@@ -194,6 +194,10 @@ class Steering:
         self._terms: dict[int, SteeringTerms] = {}  #: channel count -> its terms
         self._matrix_key: tuple | None = None  #: geometry, grid and step of the cached steering matrix
         self._matrix: torch.Tensor | None = None
+        #: (virtual mics, terms, dtype) -> the +-1 matrix whose product with distances gives the terms' differences
+        self._differences: dict[tuple[int, int, torch.dtype], torch.Tensor] = {}
+        #: (terms, pairs, dtype) -> the +-1 matrix giving every later-minus-earlier block difference of lags
+        self._block_differences: dict[tuple[int, int, torch.dtype], torch.Tensor] = {}
 
     def terms(self, channels: int) -> SteeringTerms:
         """The steered terms: per term the two (virtual) microphones, the correlation row it reads and its weight.
@@ -260,8 +264,17 @@ class Steering:
         return first, second, virtual, flat, cross, squared, distance
 
     def _lag_columns(self, distance: torch.Tensor, first: torch.Tensor, second: torch.Tensor) -> torch.Tensor:
-        """Fractional lag column of each term (M x terms) from the distances (M x V)."""
-        delay = (distance.index_select(1, first) - distance.index_select(1, second)) / self.speed_of_sound
+        """Fractional lag column of each term (M x terms) from the distances (M x V). ``first`` and ``second``
+        are always the leading entries of :meth:`terms`, so V and their count name them."""
+        key = (distance.shape[1], len(first), distance.dtype)
+        if key not in self._differences:
+            difference = torch.zeros(distance.shape[1], len(first), dtype=distance.dtype)
+            difference[first, torch.arange(len(first))] = 1.0
+            difference[second, torch.arange(len(first))] = -1.0
+            self._differences[key] = difference
+        # one product with a +-1 matrix: each entry sums one distance, minus another and exact zeros, so it
+        # equals the two columns' difference to the last bit (two index_selects and a subtraction cost more)
+        delay = (distance @ self._differences[key]) / self.speed_of_sound
         half = (self.recipe.num_lags() - 1) // 2
         return delay * self.recipe.lag_rate + half
 
@@ -283,11 +296,20 @@ class Steering:
         blocks = terms // pairs
         if blocks == 1:
             return torch.ones_like(position, dtype=torch.bool)
-        later, earlier = _block_pairs(blocks)
-        grouped = position.reshape(-1, blocks, pairs)
+        key = (terms, pairs, position.dtype)
+        if key not in self._block_differences:
+            later, earlier = _block_pairs(blocks)
+            columns = torch.arange(len(later) * pairs).reshape(-1, pairs)
+            difference = torch.zeros(terms, len(later) * pairs, dtype=position.dtype)
+            difference[(later * pairs)[:, None] + torch.arange(pairs), columns] = 1.0
+            difference[(earlier * pairs)[:, None] + torch.arange(pairs), columns] = -1.0
+            self._block_differences[key] = difference
         width = self.recipe.lag_rate / self.recipe.f_max
-        apart = (grouped.index_select(1, later) - grouped.index_select(1, earlier)).abs_() > width
-        keep = [torch.ones_like(grouped[:, 0], dtype=torch.bool)]
+        # every (later, earlier) block pair's difference in one product with a +-1 matrix (exact, as in
+        # _lag_columns): block pairs x pairs per point
+        flat = position.reshape(-1, terms)
+        apart = ((flat @ self._block_differences[key]).abs_() > width).reshape(flat.shape[0], -1, pairs)
+        keep = [torch.ones_like(flat[:, :pairs], dtype=torch.bool)]
         first = 0
         for t in range(1, blocks):  # block t against blocks 0 .. t-1: rows first .. first + t - 1 of apart
             kept = apart[:, first]
@@ -325,14 +347,21 @@ class Steering:
         position = self.lag_positions(points, mics)  # N x K x T
         low = position.floor().clamp(0, lags - 2)
         frac = (position - low).clamp(0, 1)
-        # each term's lag as an index into the flattened correlations (one gather, not three index tensors)
-        index = low.long() + ((torch.arange(n) * rows)[:, None, None] + terms.rows) * lags
+        # each term's lag as an index into the flattened correlations (one gather, not three index tensors),
+        # added in the positions' float type (whole numbers below 2^24: exact) and converted once; the next
+        # lag's value read from the correlations shifted by one
+        offset = ((torch.arange(n) * rows)[:, None, None] + terms.rows) * lags
+        if n * rows * lags < 2 ** 24 or position.dtype == torch.float64:
+            index = (low + offset.to(low.dtype)).long()
+        else:
+            index = low.long() + offset
         flat = correlation.reshape(-1)
-        a, b = flat.take(index), flat.take(index + 1)
+        a, b = flat.take(index), flat[1:].take(index)
         inside = (position >= 0) & (position <= lags - 1) & self.distinct(position, mics.shape[0])
-        inside = inside & ~self.near(points, mics)
         values = torch.where(inside, a + frac * (b - a), torch.zeros((), dtype=a.dtype))
-        return (values * (terms.weights / terms.weights.sum()).to(values.dtype)).sum(dim=-1)
+        response = (values * (terms.weights / terms.weights.sum()).to(values.dtype)).sum(dim=-1)
+        # a point near the array reads 0: set per point, not per term (the same zero, a 24th of the work)
+        return torch.where(self.near(points, mics)[..., 0], torch.zeros((), dtype=response.dtype), response)
 
     def grid_response(self, correlation: torch.Tensor, points: torch.Tensor, mics: torch.Tensor, step: float
                       ) -> torch.Tensor:
