@@ -1,15 +1,21 @@
-"""What more than one study uses: the learning checks' split, a DataModule over test recordings, live phase rows.
+"""What more than one study uses: the learning checks' split, a DataModule over test recordings, ``srp_phat``'s
+error on them, live phase rows.
 
 The studies never import one another; a helper that two of them share lives here.
 """
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 
 import numpy as np
+import torch
+import yaml
 
 from datamodules.mmaud import MMAUDDataModule, discover
+
+SRP_PHAT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "srp_phat.yaml"
 
 
 def held_out_split(seed: int) -> dict[str, float]:
@@ -30,6 +36,35 @@ def recordings_module(data: list[Path], recipe: str, cache: Path | None, batch_s
                              **rate)
     module.setup("test")
     return module
+
+
+def srp_phat_kwargs() -> dict:
+    """``srp_phat``'s settings as its model config (``configs/model/srp_phat.yaml``) gives them."""
+    return dict(yaml.safe_load(SRP_PHAT_CONFIG.read_text())["model"]["init_args"]["net_kwargs"])
+
+
+def srp_phat_error(module: MMAUDDataModule, template: torch.nn.Module | None = None
+                   ) -> tuple[float, torch.nn.Module]:
+    """``srp_phat``'s E (m, mean 3D error over the windows with ground truth) on ``module``'s test windows, as
+    ``aaute test`` computes it with the config's settings, and the prepared net: its coarse grid and null
+    thresholds depend on the geometry alone and are costly, so they are reused from ``template`` (the gate
+    and hold start afresh)."""
+    from zoo.registry import get_model
+
+    if template is None:
+        template = get_model("srp_phat", **srp_phat_kwargs())
+        template.set_bounds(module.hparams.bev_bounds)
+        batch = next(iter(module.test_dataloader()[0]))
+        template.prepare({name: batch[name] for name in ("audio_phase", "mic_positions")})
+    net = copy.deepcopy(template)
+    errors = []
+    for batch in module.test_dataloader()[0]:
+        inputs = {name: batch[name] for name in ("audio_phase", "mic_positions", "time", "sequence")}
+        with torch.no_grad():
+            position = net(inputs)["position"].numpy()
+        valid = batch["gt_valid"].numpy()
+        errors.append(np.linalg.norm(position[valid] - batch["gt"].numpy()[valid], axis=1))
+    return float(np.concatenate(errors).mean()), template
 
 
 class _Rows:
