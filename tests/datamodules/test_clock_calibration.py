@@ -165,3 +165,21 @@ def test_bad_input_gives_one_line(shared_recording):
     with pytest.raises(ClockCalibrationError, match=r"needs at least 10 blocks .* gives 5") as error:
         estimate_clock_offsets(short, CONFIG)
     assert "\n" not in str(error.value)
+
+
+def test_info_shows_the_estimated_offsets_of_separate_clocks_when_asked(shared_recording, tmp_path, capsys):
+    from datamodules.cli import main
+    from datamodules.formats.mcap_file import write_mcap
+
+    late_recording = dataclasses.replace(shared_recording, audio=late(shared_recording.audio, OFFSETS),
+                                         meta={**shared_recording.meta, "nodes_share_clock": False})
+    write_mcap(late_recording, tmp_path / "late.mcap")
+    write_mcap(shared_recording, tmp_path / "shared.mcap")
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "late.mcap"), str(tmp_path / "shared.mcap")]) == 0
+    assert "clock offsets" not in capsys.readouterr().out  # costly: only with --clocks
+    assert main(["info", str(tmp_path / "late.mcap"), str(tmp_path / "shared.mcap"), "--clocks"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "clock offsets" in line]
+    assert len(lines) == 1 and lines[0].startswith("late.mcap: clock offsets (ms, node 0 = 0): +0.000 +- 0.000, ")
+    node2 = float(lines[0].split("): ")[1].split(", ")[2].split(" +- ")[0])
+    assert abs(node2 - 0.8) < 1e3 * TOLERANCE
