@@ -6,7 +6,6 @@ The studies never import one another; a helper that two of them share lives here
 
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +47,7 @@ def srp_phat_error(module: MMAUDDataModule, template: torch.nn.Module | None = N
     """``srp_phat``'s E (m, mean 3D error over the windows with ground truth) on ``module``'s test windows, as
     ``aaute test`` computes it with the config's settings, and the prepared net: its coarse grid and null
     thresholds depend on the geometry alone and are costly, so they are reused from ``template`` (the gate
-    and hold start afresh)."""
+    and hold start afresh: each module numbers its sequences from 0)."""
     from zoo.registry import get_model
 
     if template is None:
@@ -56,7 +55,8 @@ def srp_phat_error(module: MMAUDDataModule, template: torch.nn.Module | None = N
         template.set_bounds(module.hparams.bev_bounds)
         batch = next(iter(module.test_dataloader()[0]))
         template.prepare({name: batch[name] for name in ("audio_phase", "mic_positions")})
-    net = copy.deepcopy(template)
+    net = template
+    net.gate.sequences.clear()
     errors = []
     for batch in module.test_dataloader()[0]:
         inputs = {name: batch[name] for name in ("audio_phase", "mic_positions", "time", "sequence")}

@@ -68,8 +68,8 @@ class ClockCalibrationConfig:
     """Settings of :func:`estimate_clock_offsets` (defaults: the simulator's rooftop rig)."""
 
     frame_seconds: float = 4096 / 48000  #: the phase recipes' frame (85.3 ms)
-    block_frames: int = 4  #: consecutive frames averaged into one block (0.34 s)
-    max_blocks: int = 240  #: at most this many blocks, spread evenly over the recording
+    block_frames: int = 2  #: consecutive frames averaged into one block (0.17 s)
+    max_blocks: int = 480  #: at most this many blocks, spread evenly over the recording (82 s)
     min_blocks: int = 10  #: fewer usable blocks: refuse
     f_min: float = 300.0  #: band of both measurements (Hz): above wind and HVAC rumble
     f_max: float = 8000.0

@@ -134,7 +134,7 @@ def test_a_recording_that_cannot_be_calibrated_stays_uncorrected_and_says_so(sha
     from datamodules.mmaud import MMAUDDataModule
 
     audio = shared_recording.audio
-    short = ArrayAudio(audio.read(0, int(3 * audio.sample_rate)), audio.sample_rate, audio.t0, audio.mic_positions)
+    short = ArrayAudio(audio.read(0, int(1.5 * audio.sample_rate)), audio.sample_rate, audio.t0, audio.mic_positions)
     recording = dataclasses.replace(shared_recording, audio=short, meta={**shared_recording.meta,
                                                                           "nodes_share_clock": False})
     write_mcap(recording, tmp_path / "data" / "short.mcap")
@@ -161,7 +161,7 @@ def test_bad_input_gives_one_line(shared_recording):
     with pytest.raises(ClockCalibrationError, match="needs the microphone positions") as error:
         estimate_clock_offsets(nowhere, CONFIG)
     assert "\n" not in str(error.value)
-    short = ArrayAudio(audio.read(0, int(2 * audio.sample_rate)), audio.sample_rate, audio.t0, audio.mic_positions)
+    short = ArrayAudio(audio.read(0, int(1 * audio.sample_rate)), audio.sample_rate, audio.t0, audio.mic_positions)
     with pytest.raises(ClockCalibrationError, match=r"needs at least 10 blocks .* gives 5") as error:
         estimate_clock_offsets(short, CONFIG)
     assert "\n" not in str(error.value)
