@@ -148,6 +148,22 @@ def test_a_phase_model_refuses_a_source_without_positions(quiet_recording):
         load_phase_model(config=CONFIG, source=source)
 
 
+def test_a_source_on_separate_clocks_is_tracked_with_a_warning(quiet_recording, tmp_path, caplog):
+    from datamodules.formats.mcap_file import read_mcap, write_mcap
+
+    recording = read_mcap(quiet_recording)
+    recording.meta.update(nodes_share_clock=False, audio_alignment_uncertainty_s=2e-3)
+    write_mcap(recording, tmp_path / "nodes.mcap")
+    model = load_phase_model(config=CONFIG, source=RecordingSource(quiet_recording))
+    with caplog.at_level(logging.WARNING):
+        check_geometry(model, RecordingSource(quiet_recording))
+    assert "separate clocks" not in caplog.text
+    with caplog.at_level(logging.WARNING):
+        check_geometry(model, RecordingSource(tmp_path / "nodes.mcap"))
+    assert "nodes.mcap: live tracking with 'srp_phat' uses time differences between audio nodes on separate " \
+           "clocks (alignment uncertainty 2.00 ms" in caplog.text
+
+
 def test_positions_file_serves_pcm_and_a_wrong_rate_is_refused(quiet_recording, tmp_path, caplog):
     audio = open_recording(quiet_recording).audio
     mics = tmp_path / "mics.txt"

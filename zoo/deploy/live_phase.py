@@ -39,6 +39,7 @@ from torch import nn
 
 from datamodules.errors import ConfigError
 from datamodules.features import SPEED_OF_SOUND, IncrementalPhase, PhaseRecipe
+from datamodules.formats.node_audio import warn_unshared_clocks
 from datamodules.streams import AudioSource
 from zoo.deploy.tracking import (
     HOP_SECONDS,
@@ -171,11 +172,17 @@ def require_positions(source: AudioSource, model: str) -> None:
 def check_geometry(model: PhaseTrackingModel, source: AudioSource) -> np.ndarray:
     """The source's microphone positions (channels x 3, m), checked for a phase model.
 
+    Warns when the source's audio nodes do not share a clock: live tracking does not calibrate their
+    offsets (``aaute test`` does, from the whole recording).
+
     Raises:
         TrackingError: positions unknown (a default array, or a recording that says so), a count other than
             the channels, or a sample rate below twice the recipe's highest frequency.
     """
     require_positions(source, model.name)
+    warn_unshared_clocks({"nodes_share_clock": source.nodes_share_clock,
+                          "audio_alignment_uncertainty_s": source.alignment_uncertainty_s}, source.name,
+                         f"live tracking with {model.name!r}")
     mics = np.asarray(source.mic_positions, dtype=np.float64)
     if mics.shape != (source.channels, 3):
         raise TrackingError(f"{source.name}: {source.channels} audio channels but microphone positions of shape "
