@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from benchmarks.studies.common import recordings_module, srp_phat_error
+from benchmarks.studies.common import recordings_module, srp_phat_errors
 from datamodules.atomic import atomic_write
 from datamodules.features.clock_calibration import (
     ClockCalibration,
@@ -125,13 +125,49 @@ def flight_table(offsets: pd.DataFrame) -> str:
 
 
 def e_table(errors: pd.DataFrame) -> str:
-    """Markdown: srp_phat E per condition: shared clock, uncalibrated, self-calibrated, and their ratio."""
+    """Markdown: srp_phat E per condition: shared clock, uncalibrated, self-calibrated, their ratio, and the same
+    on the flights the calibration corrected."""
     lines = ["| condition | E shared clock | E separate clocks, uncalibrated | E separate clocks, self-calibrated | "
-             "calibrated vs shared | flights corrected |", "|:--|--:|--:|--:|--:|--:|"]
+             "calibrated vs shared | flights corrected | on those: E shared / calibrated |",
+             "|:--|--:|--:|--:|--:|--:|--:|"]
     for condition, row in errors.iterrows():
         lines.append(f"| {condition} | {row.shared:.2f} m | {row.uncalibrated:.2f} m | {row.calibrated:.2f} m | "
-                     f"{row.calibrated / row.shared - 1:+.0%} | {row.corrected:.0f} of {row.recordings:.0f} |")
+                     f"{row.calibrated / row.shared - 1:+.0%} | {row.corrected:.0f} of {row.recordings:.0f} | "
+                     f"{row.shared_corrected:.2f} / {row.calibrated_corrected:.2f} m "
+                     f"({row.calibrated_corrected / row.shared_corrected - 1:+.0%}) |")
     return "\n".join(lines)
+
+
+def flight_e_table(flights: pd.DataFrame) -> str:
+    """Markdown: srp_phat E per flight on each clock setting, and whether the calibration corrected it."""
+    lines = ["| condition | flight | drone | E shared | E uncalibrated | E self-calibrated | corrected |",
+             "|:--|:--|:--|--:|--:|--:|:--|"]
+    lines += [f"| {r.condition} | {r.recording} | {r.drone} | {r.shared:.2f} m | {r.uncalibrated:.2f} m | "
+              f"{r.calibrated:.2f} m | {'yes' if r.corrected else 'no'} |" for r in flights.itertuples()]
+    return "\n".join(lines)
+
+
+def condition_errors(name: str, shared: Path, clocks: Path, cache: Path, template: torch.nn.Module | None
+                     ) -> tuple[dict[str, Any], list[dict[str, Any]], torch.nn.Module]:
+    """srp_phat's E of one condition (overall and on the corrected flights), per flight, and the prepared net."""
+    per, corrected = {}, set()
+    for column, folder, mode in (("shared", shared, "off"), ("uncalibrated", clocks, "off"),
+                                 ("calibrated", clocks, "auto")):
+        module = recordings_module([folder], RECIPE, cache, clock_calibration=mode)
+        per[column], template = srp_phat_errors(module, template)
+        log.warning("%s, %s: E %.2f m", name, column, np.concatenate(list(per[column].values())).mean())
+        if mode == "auto":  # what the DataModule did: corrected, or left as it was (and why)
+            corrected = {Path(p).stem for p, v in module.clock_estimates.items() if isinstance(v, ClockCalibration)}
+            drones = {sequence.path.stem: sequence.drone for sequence in module.sequences["test"]}
+    row: dict[str, Any] = {"condition": name, "corrected": len(corrected), "recordings": len(per["calibrated"])}
+    for column, errors in per.items():
+        row[column] = float(np.concatenate(list(errors.values())).mean())
+        row[f"{column}_corrected"] = float(np.concatenate([errors[s] for s in sorted(corrected)]).mean()) \
+            if corrected else float("nan")
+    flights = [{"condition": name, "recording": stem, "drone": drones.get(stem, "-"),
+                **{column: float(per[column][stem].mean()) for column in per}, "corrected": stem in corrected}
+               for stem in sorted(per["calibrated"])]
+    return row, flights, template
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -146,27 +182,21 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     torch.set_num_threads(1)
     begin = time.perf_counter()
-    offsets, errors, template = [], [], None
+    offsets, errors, flights, template = [], [], [], None
     with tempfile.TemporaryDirectory() as tmp:
         cache = args.cache or Path(tmp) / "cache"
         for name, shared, clocks in args.condition:
             offsets += [{"condition": name, **row} for row in calibrate(Path(clocks))]
             if args.no_srp:
                 continue
-            row = {"condition": name}
-            for column, folder, mode in (("shared", shared, "off"), ("uncalibrated", clocks, "off"),
-                                         ("calibrated", clocks, "auto")):
-                module = recordings_module([Path(folder)], RECIPE, cache, clock_calibration=mode)
-                row[column], template = srp_phat_error(module, template)
-                log.warning("%s, %s: E %.2f m", name, column, row[column])
-                if mode == "auto":  # what the DataModule did: corrected, or left as it was (and why)
-                    row["corrected"] = sum(isinstance(v, ClockCalibration) for v in module.clock_estimates.values())
-                    row["recordings"] = len(module.clock_estimates)
+            row, per_flight, template = condition_errors(name, Path(shared), Path(clocks), cache, template)
             errors.append(row)
+            flights += per_flight
     offsets_frame = pd.DataFrame(offsets)
     print(error_table(offsets_frame), flight_table(offsets_frame), sep="\n\n")
     if errors:
-        print("\n" + e_table(pd.DataFrame(errors).set_index("condition")))
+        print("\n" + e_table(pd.DataFrame(errors).set_index("condition")), flight_e_table(pd.DataFrame(flights)),
+              sep="\n\n")
     print(f"\n1 torch thread, load average {os.getloadavg()[0]:.2f} at the end, "
           f"{(time.perf_counter() - begin) / 60:.1f} min")
     if args.out is not None:
@@ -175,6 +205,8 @@ def main(argv: list[str] | None = None) -> None:
         if errors:
             with atomic_write(args.out.with_name(args.out.name + "_E.csv")) as path:
                 pd.DataFrame(errors).to_csv(path, index=False)
+            with atomic_write(args.out.with_name(args.out.name + "_flights.csv")) as path:
+                pd.DataFrame(flights).to_csv(path, index=False)
 
 
 if __name__ == "__main__":

@@ -42,10 +42,10 @@ def srp_phat_kwargs() -> dict:
     return dict(yaml.safe_load(SRP_PHAT_CONFIG.read_text())["model"]["init_args"]["net_kwargs"])
 
 
-def srp_phat_error(module: MMAUDDataModule, template: torch.nn.Module | None = None
-                   ) -> tuple[float, torch.nn.Module]:
-    """``srp_phat``'s E (m, mean 3D error over the windows with ground truth) on ``module``'s test windows, as
-    ``aaute test`` computes it with the config's settings, and the prepared net: its coarse grid and null
+def srp_phat_errors(module: MMAUDDataModule, template: torch.nn.Module | None = None
+                    ) -> tuple[dict[str, np.ndarray], torch.nn.Module]:
+    """``srp_phat``'s 3D errors (m) per recording (stem) over ``module``'s test windows with ground truth, as
+    ``aaute test`` computes them with the config's settings, and the prepared net: its coarse grid and null
     thresholds depend on the geometry alone and are costly, so they are reused from ``template`` (the gate
     and hold start afresh: each module numbers its sequences from 0)."""
     from zoo.registry import get_model
@@ -57,14 +57,25 @@ def srp_phat_error(module: MMAUDDataModule, template: torch.nn.Module | None = N
         template.prepare({name: batch[name] for name in ("audio_phase", "mic_positions")})
     net = template
     net.gate.sequences.clear()
-    errors = []
+    stems = [Path(sequence.path).stem for sequence in module.sequences["test"]]
+    errors: dict[str, list[np.ndarray]] = {}
     for batch in module.test_dataloader()[0]:
         inputs = {name: batch[name] for name in ("audio_phase", "mic_positions", "time", "sequence")}
         with torch.no_grad():
             position = net(inputs)["position"].numpy()
         valid = batch["gt_valid"].numpy()
-        errors.append(np.linalg.norm(position[valid] - batch["gt"].numpy()[valid], axis=1))
-    return float(np.concatenate(errors).mean()), template
+        error = np.linalg.norm(position - batch["gt"].numpy(), axis=1)
+        for index in np.unique(batch["sequence"].numpy()):
+            rows = valid & (batch["sequence"].numpy() == index)
+            errors.setdefault(stems[index], []).append(error[rows])
+    return {stem: np.concatenate(parts) for stem, parts in errors.items()}, template
+
+
+def srp_phat_error(module: MMAUDDataModule, template: torch.nn.Module | None = None
+                   ) -> tuple[float, torch.nn.Module]:
+    """``srp_phat``'s E (m, mean 3D error over all windows with ground truth; :func:`srp_phat_errors`)."""
+    errors, template = srp_phat_errors(module, template)
+    return float(np.concatenate(list(errors.values())).mean()), template
 
 
 class _Rows:

@@ -6,7 +6,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from benchmarks.studies.clock_calibration import e_table, error_table, flight_table, offset_errors, true_clocks
+from benchmarks.studies.clock_calibration import (
+    e_table,
+    error_table,
+    flight_e_table,
+    flight_table,
+    offset_errors,
+    true_clocks,
+)
 from datamodules.features.clock_calibration import ClockCalibration
 
 
@@ -35,5 +42,9 @@ def test_tables_count_failed_flights():
     flights = flight_table(frame).splitlines()
     assert "+0.010 +- 0.020 / -0.030 +- 0.020" in flights[2] and "failed: too quiet" in flights[3]
     errors = pd.DataFrame([{"condition": "quiet", "shared": 2.0, "uncalibrated": 9.0, "calibrated": 2.2,
-                            "corrected": 4, "recordings": 5}]).set_index("condition")
-    assert e_table(errors).splitlines()[2] == "| quiet | 2.00 m | 9.00 m | 2.20 m | +10% | 4 of 5 |"
+                            "corrected": 4, "recordings": 5, "shared_corrected": 1.5,
+                            "calibrated_corrected": 1.2}]).set_index("condition")
+    assert e_table(errors).splitlines()[2].endswith("| 2.20 m | +10% | 4 of 5 | 1.50 / 1.20 m (-20%) |")
+    flights = pd.DataFrame([{"condition": "quiet", "recording": "b", "drone": "avata", "shared": 1.0,
+                             "uncalibrated": 7.0, "calibrated": 6.5, "corrected": False}])
+    assert flight_e_table(flights).splitlines()[2] == "| quiet | b | avata | 1.00 m | 7.00 m | 6.50 m | no |"
