@@ -162,6 +162,12 @@ def _cmd_info(args: argparse.Namespace) -> int:
         except AauteError as error:
             failed.append((path, error))
     sys.stdout.write(format_table(rows) + "\n")
+    if getattr(args, "clocks", False):
+        from datamodules.describe import clock_line
+
+        for path in paths:
+            if all(path != bad for bad, _ in failed) and (line := clock_line(path, **options)) is not None:
+                sys.stdout.write(f"{path.name}: {line}\n")
     for path, error in failed:
         message = " ".join(str(error).split())
         sys.stdout.write(f"FAILED {path}: {message}\n" if str(path) not in message else f"FAILED {message}\n")
@@ -173,6 +179,9 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _add_info(sub: argparse._SubParsersAction) -> None:
     info = sub.add_parser("info", help="what recordings hold (files or folders of any layout)")
     info.add_argument("paths", nargs="+", type=Path)
+    info.add_argument("--clocks", action="store_true",
+                      help="for recordings whose audio nodes do not share a clock, estimate the offsets between "
+                           "them from the audio (with their uncertainty; reads all of it, seconds per minute)")
     _add_reader_options(info)
     info.set_defaults(func=_cmd_info)
 

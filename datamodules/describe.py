@@ -111,6 +111,20 @@ def describe(path: Path, sample_frames: int = 5, **options: Any) -> dict[str, An
     return row
 
 
+def clock_line(path: Path, **options: Any) -> str | None:
+    """The nodes' clock offsets estimated from the audio (with their uncertainty), or why there are none, for a
+    recording whose nodes do not share a clock (None for one that says they do). Reads the whole audio."""
+    from datamodules.features.clock_calibration import ClockCalibrationError, estimate_clock_offsets
+
+    recording = open_recording(Path(path), **options)
+    if recording.audio is None or recording.meta.get("nodes_share_clock", True) is not False:
+        return None
+    try:
+        return estimate_clock_offsets(recording.audio).summary()
+    except ClockCalibrationError as error:
+        return f"clock offsets not estimated: {error}"
+
+
 def format_table(rows: list[dict[str, Any]]) -> str:
     """A plain-text table (one row per recording), aligned for terminals."""
     if not rows:

@@ -46,10 +46,10 @@ from datamodules.features import (
     stored_recipe,
 )
 from datamodules.features.clock_calibration import (
-    CLOCK_CALIBRATION_MODES,
     ClockCalibration,
     ClockCalibrationConfig,
     ClockCalibrationError,
+    check_mode,
     estimate_clock_offsets,
     wants_calibration,
 )
@@ -179,8 +179,7 @@ class MMAUDDataModule(L.LightningDataModule):
         clock_calibration: str = "auto",
     ):
         super().__init__()
-        if clock_calibration not in CLOCK_CALIBRATION_MODES:
-            raise ConfigError(f"clock_calibration must be one of {CLOCK_CALIBRATION_MODES}, not {clock_calibration!r}")
+        check_mode(clock_calibration)
         if bev_bounds is None:
             bev_bounds = [[-2.0, 8.0], [-5.0, 25.0]]
         self.save_hyperparameters()
@@ -209,6 +208,8 @@ class MMAUDDataModule(L.LightningDataModule):
         self.purged = 0  #: windows dropped in the purge gaps of time_blocks
         self.drone_counts: dict[str, int] = {}  #: recordings found per drone
         self.audio_sample_rates: list[float] = []  #: of the recordings indexed (Hz)
+        #: per recording calibrated (path), its clock estimate, or the one-line reason it has none (uncorrected)
+        self.clock_estimates: dict[str, ClockCalibration | str] = {}
 
     @property
     def protocol(self) -> str:
@@ -318,7 +319,7 @@ class MMAUDDataModule(L.LightningDataModule):
         by_sequence = self.split_config.protocol == "by_sequence"
         assignment = self._assign_splits(recordings) if by_sequence else ["all"] * len(recordings)
         self.sequences = {name: [] for name in SPLITS}
-        self.skipped, self.purged = {}, 0
+        self.skipped, self.purged, self.clock_estimates = {}, 0, {}
         threads = torch.get_num_threads()
         torch.set_num_threads(1)  # one small window at a time: threads only contend
         try:
@@ -434,8 +435,9 @@ class MMAUDDataModule(L.LightningDataModule):
     def _clock_calibration(self, path: Path, recording: Recording) -> ClockCalibration | None:
         """The nodes' clock offsets estimated from the recording's audio (cached beside its features).
 
-        When the audio cannot tell them (too short, no coherent source), ``clock_calibration: on`` raises
-        and ``auto`` warns and leaves the features uncorrected (None)."""
+        When the audio cannot tell them (too short, no coherent source, an unreliable fit), ``clock_calibration:
+        on`` raises and ``auto`` warns and leaves the features uncorrected (None): time differences between
+        its nodes then carry their clock error. Either way :attr:`clock_estimates` keeps the outcome."""
         config = ClockCalibrationConfig()
         audio = recording.audio
         options = repr(sorted((self.hparams.reader_options or {}).items())).encode()
@@ -453,9 +455,12 @@ class MMAUDDataModule(L.LightningDataModule):
         except ClockCalibrationError as error:
             if self.hparams.clock_calibration == "on":
                 raise
-            log.warning("%s; its phase features are not corrected", error)
+            self.clock_estimates[str(path)] = str(error)
+            log.warning("%s; its phase features are NOT corrected: its nodes' clock offsets stay in its time "
+                        "differences", error)
             return None
         clocks = ClockCalibration.from_array(self.cache.open(key)[0])
+        self.clock_estimates[str(path)] = clocks
         log.info("%s: %s", path, clocks.summary())
         return clocks
 

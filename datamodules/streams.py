@@ -53,6 +53,8 @@ class AudioSource(ABC):
         mic_positions: channels x 3 (m), and ``mic_source`` says where they came from.
         mic_positions_known: whether they were measured (a file, or a recording that knows them) rather than
             a default standing in for unknown positions.
+        nodes_share_clock: whether the audio nodes sample on one clock (a recording on separate clocks says
+            not), and ``alignment_uncertainty_s`` how well their stamps align them (None: unknown).
         leftover: samples of a last, incomplete block (dropped), set when the stream ends.
         stalled: whether the stream ended by stalling rather than by its end.
     """
@@ -64,6 +66,8 @@ class AudioSource(ABC):
     mic_positions: np.ndarray
     mic_source: str = ""
     mic_positions_known: bool = True
+    nodes_share_clock: bool = True
+    alignment_uncertainty_s: float | None = None
     leftover: int = 0
     stalled: bool = False
 
@@ -97,6 +101,8 @@ class RecordingSource(AudioSource):
         self.mic_positions = np.asarray(self.audio.mic_positions, dtype=np.float64)
         self.mic_source = "the recording"
         self.mic_positions_known = bool(recording.meta.get("mic_positions_known", True))
+        self.nodes_share_clock = recording.meta.get("nodes_share_clock", True) is not False
+        self.alignment_uncertainty_s = recording.meta.get("audio_alignment_uncertainty_s")
         if not self.mic_positions_known and mic_positions is not None:
             self.mic_positions = read_mic_positions(mic_positions, self.channels)
             self.mic_source, self.mic_positions_known = str(mic_positions), True

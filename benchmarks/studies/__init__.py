@@ -19,6 +19,10 @@ section that quotes its numbers (or only its command):
   "Real-time tracking", phase table
 - ``live_phase_calibration --data DIR``: the ``srp_phat`` online smoother preset from development flights?
   "Real-time tracking", command only
+- ``clock_sensitivity [--identifiability]``: what clock error between nodes costs srp_phat? "Train and test a
+  model", clock table
+- ``clock_calibration --condition NAME SHARED_DIR CLOCKS_DIR``: how close the self-calibrated node clocks come,
+  and srp_phat's E with them? same section, self-calibration table
 - ``datamodule_bench --data DIR``: the DataModule's feature, cache and epoch speed and memory? not in the README
 - ``recording_bench``: the recording pipeline's speed and size? ``make bench``; "Tests, lint, benchmarks", command only
 """

@@ -19,7 +19,6 @@ whether four single-microphone nodes' direct-path time differences can tell the 
 from __future__ import annotations
 
 import argparse
-import copy
 import dataclasses
 import logging
 import tempfile
@@ -28,9 +27,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-import yaml
 
-from benchmarks.studies.common import recordings_module
+from benchmarks.studies.common import recordings_module, srp_phat_error, srp_phat_kwargs
 from datamodules.atomic import atomic_write
 from datamodules.formats.mcap_file import read_mcap, write_mcap
 from datamodules.recording import ArrayAudio
@@ -38,7 +36,6 @@ from datamodules.simulate.acoustics import AudioConfig
 from datamodules.simulate.ambient import AmbientConfig
 from datamodules.simulate.clocks import ClockConfig, draw_clocks, resample_at_clock
 from datamodules.simulate.simulator import SimulationConfig, simulate_dataset
-from zoo.registry import get_model
 
 log = logging.getLogger(__name__)
 
@@ -49,12 +46,6 @@ CONDITIONS = {
     "quiet": AmbientConfig(level_dba=(45.0, 45.0), wind_speed=(0.0, 0.0), hvac=False),
     "default": AmbientConfig(),
 }
-CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "srp_phat.yaml"
-
-
-def net_kwargs() -> dict:
-    """``srp_phat``'s settings as its model config gives them."""
-    return dict(yaml.safe_load(CONFIG.read_text())["model"]["init_args"]["net_kwargs"])
 
 
 def settings() -> list[tuple[str, ClockConfig | None]]:
@@ -78,23 +69,10 @@ def with_clocks(source: Path, target: Path, clocks: ClockConfig) -> None:
 
 
 def evaluate(folder: Path, cache: Path, template: torch.nn.Module | None) -> tuple[float, torch.nn.Module]:
-    """``srp_phat``'s E (m) over every window with ground truth of the recordings in ``folder``, and the
-    prepared net (its null thresholds, costly to make, are reused from ``template``; the gate starts afresh)."""
+    """``srp_phat``'s E (m) over every window with ground truth of the recordings in ``folder``, uncalibrated,
+    and the prepared net (reused from ``template``)."""
     module = recordings_module([folder], RECIPE, cache, clock_calibration="off")  # what clock error costs
-    if template is None:
-        template = get_model("srp_phat", **net_kwargs())
-        template.set_bounds(module.hparams.bev_bounds)
-        batch = next(iter(module.test_dataloader()[0]))
-        template.prepare({name: batch[name] for name in ("audio_phase", "mic_positions")})
-    net = copy.deepcopy(template)
-    errors = []
-    for batch in module.test_dataloader()[0]:
-        inputs = {name: batch[name] for name in ("audio_phase", "mic_positions", "time", "sequence")}
-        with torch.no_grad():
-            position = net(inputs)["position"].numpy()
-        valid = batch["gt_valid"].numpy()
-        errors.append(np.linalg.norm(position[valid] - batch["gt"].numpy()[valid], axis=1))
-    return float(np.concatenate(errors).mean()), template
+    return srp_phat_error(module, template)
 
 
 def identifiability(offsets_ms: tuple[float, ...] = (0.1, 0.3, 1.0), trials: int = 200, seed: int = 0) -> str:
@@ -105,7 +83,7 @@ def identifiability(offsets_ms: tuple[float, ...] = (0.1, 0.3, 1.0), trials: int
 
     from datamodules.simulate.microphones import mic_geometry
 
-    mics, c = mic_geometry("distributed4"), float(net_kwargs()["speed_of_sound"])
+    mics, c = mic_geometry("distributed4"), float(srp_phat_kwargs()["speed_of_sound"])
 
     def tdoa(point: np.ndarray) -> np.ndarray:
         arrival = np.linalg.norm(point - mics, axis=1) / c

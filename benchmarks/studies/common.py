@@ -1,4 +1,5 @@
-"""What more than one study uses: the learning checks' split, a DataModule over test recordings, live phase rows.
+"""What more than one study uses: the learning checks' split, a DataModule over test recordings, ``srp_phat``'s
+error on them, live phase rows.
 
 The studies never import one another; a helper that two of them share lives here.
 """
@@ -8,8 +9,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
+import yaml
 
 from datamodules.mmaud import MMAUDDataModule, discover
+
+SRP_PHAT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "model" / "srp_phat.yaml"
 
 
 def held_out_split(seed: int) -> dict[str, float]:
@@ -30,6 +35,47 @@ def recordings_module(data: list[Path], recipe: str, cache: Path | None, batch_s
                              **rate)
     module.setup("test")
     return module
+
+
+def srp_phat_kwargs() -> dict:
+    """``srp_phat``'s settings as its model config (``configs/model/srp_phat.yaml``) gives them."""
+    return dict(yaml.safe_load(SRP_PHAT_CONFIG.read_text())["model"]["init_args"]["net_kwargs"])
+
+
+def srp_phat_errors(module: MMAUDDataModule, template: torch.nn.Module | None = None
+                    ) -> tuple[dict[str, np.ndarray], torch.nn.Module]:
+    """``srp_phat``'s 3D errors (m) per recording (stem) over ``module``'s test windows with ground truth, as
+    ``aaute test`` computes them with the config's settings, and the prepared net: its coarse grid and null
+    thresholds depend on the geometry alone and are costly, so they are reused from ``template`` (the gate
+    and hold start afresh: each module numbers its sequences from 0)."""
+    from zoo.registry import get_model
+
+    if template is None:
+        template = get_model("srp_phat", **srp_phat_kwargs())
+        template.set_bounds(module.hparams.bev_bounds)
+        batch = next(iter(module.test_dataloader()[0]))
+        template.prepare({name: batch[name] for name in ("audio_phase", "mic_positions")})
+    net = template
+    net.gate.sequences.clear()
+    stems = [Path(sequence.path).stem for sequence in module.sequences["test"]]
+    errors: dict[str, list[np.ndarray]] = {}
+    for batch in module.test_dataloader()[0]:
+        inputs = {name: batch[name] for name in ("audio_phase", "mic_positions", "time", "sequence")}
+        with torch.no_grad():
+            position = net(inputs)["position"].numpy()
+        valid = batch["gt_valid"].numpy()
+        error = np.linalg.norm(position - batch["gt"].numpy(), axis=1)
+        for index in np.unique(batch["sequence"].numpy()):
+            rows = valid & (batch["sequence"].numpy() == index)
+            errors.setdefault(stems[index], []).append(error[rows])
+    return {stem: np.concatenate(parts) for stem, parts in errors.items()}, template
+
+
+def srp_phat_error(module: MMAUDDataModule, template: torch.nn.Module | None = None
+                   ) -> tuple[float, torch.nn.Module]:
+    """``srp_phat``'s E (m, mean 3D error over all windows with ground truth; :func:`srp_phat_errors`)."""
+    errors, template = srp_phat_errors(module, template)
+    return float(np.concatenate(list(errors.values())).mean()), template
 
 
 class _Rows:

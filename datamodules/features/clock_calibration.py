@@ -27,6 +27,7 @@ early; :func:`correct_cross_spectra` undoes that on pair cross-spectra by the ph
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 from dataclasses import asdict, dataclass, field
@@ -35,6 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from datamodules.errors import ConfigError
 from datamodules.features.phase import SPEED_OF_SOUND, GccPhat, PhaseRecipe, mic_pairs
 from datamodules.recording import AudioStream, RecordingError
 
@@ -45,15 +47,20 @@ log = logging.getLogger(__name__)
 CLOCK_CALIBRATION_MODES = ("auto", "on", "off")
 
 
-def wants_calibration(mode: str, meta: dict[str, Any]) -> bool:
-    """Whether ``mode`` (:data:`CLOCK_CALIBRATION_MODES`) calibrates a recording with metadata ``meta``."""
+def check_mode(mode: str) -> str:
+    """``mode`` if it is one of :data:`CLOCK_CALIBRATION_MODES` (else ConfigError, one line)."""
     if mode not in CLOCK_CALIBRATION_MODES:
-        raise ValueError(f"clock_calibration must be one of {CLOCK_CALIBRATION_MODES}, not {mode!r}")
+        raise ConfigError(f"clock_calibration must be one of {CLOCK_CALIBRATION_MODES}, not {mode!r}")
+    return mode
+
+
+def wants_calibration(mode: str, meta: dict[str, Any]) -> bool:
+    """Whether ``mode`` (checked by :func:`check_mode`) calibrates a recording with metadata ``meta``."""
     return mode == "on" or (mode == "auto" and meta.get("nodes_share_clock", True) is False)
 
 
 class ClockCalibrationError(RecordingError):
-    """A recording the calibration cannot use (no positions, too short, too few usable frames)."""
+    """A recording the calibration cannot use (no positions, too short, too few usable frames, an unreliable fit)."""
 
 
 @dataclass(frozen=True)
@@ -61,8 +68,8 @@ class ClockCalibrationConfig:
     """Settings of :func:`estimate_clock_offsets` (defaults: the simulator's rooftop rig)."""
 
     frame_seconds: float = 4096 / 48000  #: the phase recipes' frame (85.3 ms)
-    block_frames: int = 4  #: consecutive frames averaged into one block (0.34 s)
-    max_blocks: int = 240  #: at most this many blocks, spread evenly over the recording
+    block_frames: int = 2  #: consecutive frames averaged into one block (0.17 s)
+    max_blocks: int = 480  #: at most this many blocks, spread evenly over the recording (82 s)
     min_blocks: int = 10  #: fewer usable blocks: refuse
     f_min: float = 300.0  #: band of both measurements (Hz): above wind and HVAC rumble
     f_max: float = 8000.0
@@ -76,8 +83,13 @@ class ClockCalibrationConfig:
     loss_scale: float = 3.0  #: soft-L1 knee, in units of ``sigma``
     min_peak: float = 4.0  #: blocks whose multipath score (mean over pairs, in units of the correlation's
     #: robust spread) is below: no coherent source
-    fit_drift: bool = False  #: also fit a constant drift per node (ppm)
+    #: also fit a constant drift per node (20 ppm is 1.2 ms over a minute); None: fit them and keep them only
+    #: when one is ``drift_significance`` jackknife standard errors from zero (else refit the offsets alone)
+    fit_drift: bool | None = None
+    drift_significance: float = 3.0
     jackknife_blocks: int = 5  #: blocks of the uncertainty's jackknife (0: none)
+    max_residual: float = 3e-5  #: a fit whose robust residual RMS (s) is above this explains no source: refuse
+    max_std: float = 3e-4  #: a fit with any offset's jackknife standard error (s) above this: refuse
 
     def key(self) -> str:
         """A short digest of the settings (for cache keys)."""
@@ -349,8 +361,9 @@ def estimate_clock_offsets(audio: AudioStream, config: ClockCalibrationConfig = 
     """Estimate the nodes' clock offsets (node 0 = 0) of ``audio`` from its own sound (see the module docstring).
 
     Raises:
-        ClockCalibrationError: no microphone positions, too short a recording or too few frames with a
-            coherent source, in one line.
+        ClockCalibrationError: no microphone positions, too short a recording, too few frames with a
+            coherent source, or a fit that explains them badly or is too uncertain (``max_residual``,
+            ``max_std``), in one line.
     """
     mics = np.asarray(audio.mic_positions, dtype=np.float64)
     if audio.num_channels < 2:
@@ -362,12 +375,31 @@ def estimate_clock_offsets(audio: AudioStream, config: ClockCalibrationConfig = 
     if frames.size < config.min_blocks:
         raise ClockCalibrationError(f"clock calibration found a coherent source in {frames.size} blocks, needs "
                                     f"{config.min_blocks}")
-    model = _Model(mics, m, config)
     positions = _initial_positions(mics, m, frames, config)
-    clocks = np.zeros(model.clock_params)
-    fit = model.solve(frames, np.concatenate([clocks, positions.ravel()]))
+    if config.fit_drift is None:  # fit drifts; keep them only if one of them is told from zero
+        result = _fit(mics, m, frames, positions, dataclasses.replace(config, fit_drift=True))
+        told = np.abs(result.drifts_ppm) > config.drift_significance * result.drifts_std_ppm
+        if not np.any(told | ~np.isfinite(result.drifts_std_ppm)):
+            result = _fit(mics, m, frames, result.positions, dataclasses.replace(config, fit_drift=False))
+    else:
+        result = _fit(mics, m, frames, positions, config)
+    rms = result.residual_rms_s
+    worst_std = float(np.nanmax(result.offsets_std_s, initial=0.0))
+    if rms > config.max_residual or worst_std > config.max_std:
+        raise ClockCalibrationError(
+            f"clock calibration is unreliable (residual RMS {1e6 * rms:.0f} us, limit {1e6 * config.max_residual:.0f}; "
+            f"offset std up to {1e3 * worst_std:.3f} ms, limit {1e3 * config.max_std:.3f}; {result.frames} blocks): "
+            f"{result.summary()}")
+    return result
+
+
+def _fit(mics: np.ndarray, m: FrameMeasurements, frames: np.ndarray, positions: np.ndarray,
+         config: ClockCalibrationConfig) -> ClockCalibration:
+    """The joint fit from ``positions`` (per frame), its jackknife uncertainty and robust residual RMS."""
+    model = _Model(mics, m, config)
+    fit = model.solve(frames, np.concatenate([np.zeros(model.clock_params), positions.ravel()]))
     theta = fit.x
-    n = audio.num_channels - 1
+    n = mics.shape[0] - 1
     jack = _jackknife(model, frames, theta, config.jackknife_blocks)
     std = np.full(model.clock_params, np.nan) if jack is None else jack
     residual = fit.fun * config.sigma

@@ -18,6 +18,10 @@ the consecutive frames from the stream's first sample (the grid ``0, frame, 2 fr
 the audio arrives: every frame that ends before the current window's first sample, with equal weights
 at first and then exponentially, exactly as :meth:`PhaseWindows._fold_past` does. A frame holding NaN
 or infinite samples is left out of the mean (offline such audio is refused).
+
+Node clocks (:meth:`IncrementalPhase.set_clocks`): from then on every frame's cross-spectra are corrected
+to node 0's clock as :class:`~datamodules.features.PhaseWindows` does with ``clocks``; frames already
+computed are computed again, and the long-term mean is corrected by the offsets of the newest sample.
 """
 
 from __future__ import annotations
@@ -26,7 +30,14 @@ import numpy as np
 import torch
 
 from datamodules.errors import ConfigError
-from datamodules.features.phase import GccPhat, PhaseRecipe, fold_mean, without_mean
+from datamodules.features.phase import (
+    GccPhat,
+    NodeClocks,
+    PhaseRecipe,
+    correct_cross_spectra,
+    fold_mean,
+    without_mean,
+)
 
 
 class IncrementalPhase:
@@ -57,6 +68,8 @@ class IncrementalPhase:
         self.folded = 0
         self.decay = float(np.exp(-(self.frame / self.sample_rate) / recipe.static_seconds))
         self.computed = 0  #: frames whose cross-spectra were computed
+        self.clocks: NodeClocks | None = None  #: the nodes' clocks the cross-spectra are corrected by
+        self.freqs = self.gcc.bins.to(torch.float64) * self.sample_rate / self.gcc.n_fft
         self.used = 0  #: frames read by windows and the mean
 
     # ------------------------------------------------------------------------------ audio in
@@ -102,6 +115,9 @@ class IncrementalPhase:
                 frames = np.nan_to_num(frames)
             with torch.no_grad():
                 computed = self.gcc.cross_spectra(torch.from_numpy(frames))  # pairs x M x bins
+                if self.clocks is not None:
+                    centres = (np.asarray(missing) + 0.5 * self.frame) / self.sample_rate
+                    computed = self._corrected(computed, self.clocks.offsets_at(centres))
             for m, s in enumerate(missing):
                 self._store[s] = computed[:, m] if finite[m] else None
             self.computed += len(missing)
@@ -112,6 +128,18 @@ class IncrementalPhase:
         if any(c is None for c in cross):
             return None
         return torch.stack(cross, dim=1)  # type: ignore[arg-type]
+
+    def _corrected(self, cross: torch.Tensor, offsets: np.ndarray) -> torch.Tensor:
+        return correct_cross_spectra(cross, self.freqs, offsets, self.gcc.first, self.gcc.second)
+
+    def set_clocks(self, clocks: NodeClocks) -> None:
+        """Correct the cross-spectra to node 0's clock from now on (``clocks.offsets_at(t)``: each node's offset
+        ``t`` seconds after the stream's first sample)."""
+        self.clocks = clocks
+        self._store.clear()
+        if self.mean is not None:
+            with torch.no_grad():
+                self.mean = self._corrected(self.mean[:, None], clocks.offsets_at(self.end / self.sample_rate))[:, 0]
 
     def _fold(self, window_start: int) -> None:
         """Fold every whole grid frame that ends at or before ``window_start`` into the long-term mean."""

@@ -13,6 +13,7 @@ from datamodules.features.clock_calibration import (
     ClockCalibration,
     ClockCalibrationConfig,
     ClockCalibrationError,
+    check_mode,
     estimate_clock_offsets,
     wants_calibration,
 )
@@ -81,12 +82,15 @@ def test_the_datamodule_switch_corrects_recordings_on_separate_clocks(shared_rec
     write_mcap(recording, tmp_path / "data" / "late.mcap")
     write_mcap(shared_recording, tmp_path / "shared" / "shared.mcap")
 
+    estimates = {}
+
     def features(stem: str, mode: str) -> tuple[np.ndarray, str]:
         folder = tmp_path / ("shared" if stem == "shared" else "data")
         module = MMAUDDataModule([str(folder)], split={"train": [], "val": [], "test": [stem]},
                                  inputs={"audio_phase": "gcc_phat"}, test_lights=["ideal"],
                                  cache_dir=str(tmp_path / "cache"), clock_calibration=mode)
         module.setup("test")
+        estimates[(stem, mode)] = module.clock_estimates
         key = module.sequences["test"][0].feature_keys["audio_phase"]
         return np.asarray(module.cache.open(key), dtype=np.float32), key
 
@@ -94,6 +98,9 @@ def test_the_datamodule_switch_corrects_recordings_on_separate_clocks(shared_rec
     raw, raw_key = features("late", "off")
     corrected, key = features("late", "auto")
     assert "-clk" in key and "-clk" not in raw_key
+    assert estimates[("shared", "auto")] == {} and estimates[("late", "off")] == {}
+    (found,) = estimates[("late", "auto")].values()
+    assert isinstance(found, ClockCalibration) and abs(found.offsets_s[2] - 0.8e-3) < TOLERANCE
 
     def peak_lags(features: np.ndarray) -> np.ndarray:  # each window's strongest lag per pair (frames averaged)
         return features.mean(axis=2).argmax(axis=-1)
@@ -110,8 +117,42 @@ def test_the_datamodule_switch_corrects_recordings_on_separate_clocks(shared_rec
 def test_modes():
     assert wants_calibration("auto", {"nodes_share_clock": False}) and not wants_calibration("auto", {})
     assert wants_calibration("on", {}) and not wants_calibration("off", {"nodes_share_clock": False})
-    with pytest.raises(ValueError, match="clock_calibration must be one of"):
-        wants_calibration("maybe", {})
+    assert check_mode("auto") == "auto"
+    with pytest.raises(ConfigError, match="clock_calibration must be one of"):
+        check_mode("maybe")
+
+
+def test_an_unreliable_fit_is_refused(shared_recording):
+    strict = dataclasses.replace(CONFIG, max_residual=1e-9)  # no fit explains its measurements that well
+    with pytest.raises(ClockCalibrationError, match=r"unreliable \(residual RMS .* clock offsets") as error:
+        estimate_clock_offsets(late(shared_recording.audio, OFFSETS), strict)
+    assert "\n" not in str(error.value)
+
+
+def test_a_recording_that_cannot_be_calibrated_stays_uncorrected_and_says_so(shared_recording, tmp_path, caplog):
+    from datamodules.formats.mcap_file import write_mcap
+    from datamodules.mmaud import MMAUDDataModule
+
+    audio = shared_recording.audio
+    short = ArrayAudio(audio.read(0, int(1.5 * audio.sample_rate)), audio.sample_rate, audio.t0, audio.mic_positions)
+    recording = dataclasses.replace(shared_recording, audio=short, meta={**shared_recording.meta,
+                                                                          "nodes_share_clock": False})
+    write_mcap(recording, tmp_path / "data" / "short.mcap")
+
+    def module(mode: str) -> MMAUDDataModule:
+        return MMAUDDataModule([str(tmp_path / "data")], split={"train": [], "val": [], "test": ["short"]},
+                               inputs={"audio_phase": "gcc_phat"}, test_lights=["ideal"], window_seconds=1.0,
+                               cache_dir=str(tmp_path / "cache"), clock_calibration=mode)
+
+    auto = module("auto")
+    with caplog.at_level("WARNING"):
+        auto.setup("test")
+    (reason,) = auto.clock_estimates.values()
+    assert isinstance(reason, str) and "needs at least 10 blocks" in reason
+    assert "NOT corrected" in caplog.text and "short.mcap" in caplog.text
+    assert "-clk" not in auto.sequences["test"][0].feature_keys["audio_phase"]
+    with pytest.raises(ClockCalibrationError, match="short.mcap: clock calibration needs at least 10 blocks"):
+        module("on").setup("test")
 
 
 def test_bad_input_gives_one_line(shared_recording):
@@ -120,7 +161,25 @@ def test_bad_input_gives_one_line(shared_recording):
     with pytest.raises(ClockCalibrationError, match="needs the microphone positions") as error:
         estimate_clock_offsets(nowhere, CONFIG)
     assert "\n" not in str(error.value)
-    short = ArrayAudio(audio.read(0, int(2 * audio.sample_rate)), audio.sample_rate, audio.t0, audio.mic_positions)
+    short = ArrayAudio(audio.read(0, int(1 * audio.sample_rate)), audio.sample_rate, audio.t0, audio.mic_positions)
     with pytest.raises(ClockCalibrationError, match=r"needs at least 10 blocks .* gives 5") as error:
         estimate_clock_offsets(short, CONFIG)
     assert "\n" not in str(error.value)
+
+
+def test_info_shows_the_estimated_offsets_of_separate_clocks_when_asked(shared_recording, tmp_path, capsys):
+    from datamodules.cli import main
+    from datamodules.formats.mcap_file import write_mcap
+
+    late_recording = dataclasses.replace(shared_recording, audio=late(shared_recording.audio, OFFSETS),
+                                         meta={**shared_recording.meta, "nodes_share_clock": False})
+    write_mcap(late_recording, tmp_path / "late.mcap")
+    write_mcap(shared_recording, tmp_path / "shared.mcap")
+    capsys.readouterr()
+    assert main(["info", str(tmp_path / "late.mcap"), str(tmp_path / "shared.mcap")]) == 0
+    assert "clock offsets" not in capsys.readouterr().out  # costly: only with --clocks
+    assert main(["info", str(tmp_path / "late.mcap"), str(tmp_path / "shared.mcap"), "--clocks"]) == 0
+    lines = [line for line in capsys.readouterr().out.splitlines() if "clock offsets" in line]
+    assert len(lines) == 1 and lines[0].startswith("late.mcap: clock offsets (ms, node 0 = 0): +0.000 +- 0.000, ")
+    node2 = float(lines[0].split("): ")[1].split(", ")[2].split(" +- ")[0])
+    assert abs(node2 - 0.8) < 1e3 * TOLERANCE

@@ -148,6 +148,48 @@ def test_a_phase_model_refuses_a_source_without_positions(quiet_recording):
         load_phase_model(config=CONFIG, source=source)
 
 
+def test_nodes_on_separate_clocks_are_calibrated_from_the_stream_start(tmp_path, caplog):
+    from datamodules.simulate.acoustics import AudioConfig
+    from datamodules.simulate.ambient import AmbientConfig
+    from datamodules.simulate.clocks import ClockConfig
+    from datamodules.simulate.simulator import SimulationConfig, simulate_dataset
+    from datamodules.simulate.trajectory import TrajectoryConfig
+    from zoo.deploy.live_phase import CalibratingPhase
+
+    quiet = AmbientConfig(level_dba=(45.0, 45.0), wind_speed=(0.0, 0.0), hvac=False)
+    flying = TrajectoryConfig(hover_probability=0.0, cruise_speed_median=3.0, cruise_speed_sigma=0.1)
+    config = SimulationConfig(duration=12.0, drone="m300", camera=False, lidar_sensors=(), trajectory=flying,
+                              audio=AudioConfig(ambient=quiet), clocks=ClockConfig(offset_ms=[0.0, 0.0, 0.8, 0.0]))
+    path = simulate_dataset(tmp_path / "nodes", 1, config, seed=6, progress=False)[0]
+
+    def tracker(clock_seconds: float) -> PhaseTracker:
+        source = RecordingSource(path)
+        model = load_phase_model(config=CONFIG, source=source)
+        model.net.null_windows = NULL_WINDOWS
+        return PhaseTracker(model, source, [Rows()], clock_seconds=clock_seconds)
+
+    with caplog.at_level(logging.WARNING):
+        live = tracker(8.0)
+        live.run()
+    front = live.front
+    assert isinstance(front, CalibratingPhase) and front.calibrated_at == pytest.approx(8.0, abs=0.1)
+    offsets = front.calibration.offsets_s
+    assert abs(offsets[2] - 0.8e-3) < 5e-5 and np.abs(offsets[[1, 3]]).max() < 5e-5
+    assert "estimated from the first 8 s" in caplog.text
+    assert "phase features corrected by the clock offsets" in caplog.text
+    # the last window's features: those of the offline recipe corrected by the same clocks, not the raw ones
+    audio = open_recording(path).audio
+    t_end = np.array([audio.t0 + front.end / audio.sample_rate])
+    features = front.features().numpy()
+    corrected = PhaseWindows(audio, front.recipe, t_end, clocks=front.calibration)(0)
+    raw = PhaseWindows(audio, front.recipe, t_end)(0)
+    assert np.abs(features - corrected).max() < 0.1 * np.abs(features - raw).max()
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        plain = tracker(0.0)
+    assert type(plain.front) is not CalibratingPhase and "offsets between the nodes are not calibrated" in caplog.text
+
+
 def test_positions_file_serves_pcm_and_a_wrong_rate_is_refused(quiet_recording, tmp_path, caplog):
     audio = open_recording(quiet_recording).audio
     mics = tmp_path / "mics.txt"

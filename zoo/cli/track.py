@@ -119,7 +119,8 @@ def run_track(args: argparse.Namespace) -> int:
             writers.append(mcap_writer)
         tracker = PhaseTracker if phase else Tracker
         preset = args.preset if phase or args.preset else "robust"  # a phase model falls back to its config's
-        report = tracker(model, audio, writers, lag=args.lag, preset=preset, batch=args.batch).run()
+        extra = {"clock_seconds": args.clock_seconds} if phase else {}
+        report = tracker(model, audio, writers, lag=args.lag, preset=preset, batch=args.batch, **extra).run()
         if mcap_writer is not None:
             mcap_writer.finish()
     sys.stderr.write(f"aaute track: {report.summary()}\n")
@@ -152,6 +153,10 @@ def add_command(sub: argparse._SubParsersAction) -> None:
     track.add_argument("--preset", choices=["robust", "srp_phat"],
                        help="online smoother preset (default: a phase config's live_smoother, else robust)")
     track.add_argument("--realtime", action="store_true", help="recordings: deliver blocks at real-time pace")
+    track.add_argument("--clock-seconds", type=float, default=30.0,
+                       help="phase models, recordings whose audio nodes do not share a clock: seconds of the "
+                            "stream's start from which their offsets are estimated, then corrected (default 30; "
+                            "0: not corrected)")
     pcm = track.add_argument_group("raw PCM on stdin and WAV files")
     pcm.add_argument("--channels", type=int, help="interleaved channels of the PCM stream")
     pcm.add_argument("--rate", type=float, help="sample rate of the PCM stream (Hz)")

@@ -21,6 +21,12 @@ Geometry is never guessed: the source's positions must be known (the recording's
 their count must equal the channels (:class:`PhaseTracker` refuses otherwise); a sample rate below twice
 the recipe's highest frequency is refused; an aperture too small for the region is warned about
 (:func:`check_geometry`).
+
+Nodes on separate clocks (a source that says ``nodes_share_clock: false``): with ``clock_seconds`` > 0
+the front end (:class:`CalibratingPhase`) keeps the stream's first ``clock_seconds`` of audio, estimates
+the nodes' clock offsets and drifts from it (:func:`~datamodules.features.clock_calibration.estimate_clock_offsets`)
+when they have arrived, and corrects the cross-spectra of every later frame; rows before that, and all
+rows when the estimate fails (a warning says why), use the uncorrected time differences.
 """
 
 from __future__ import annotations
@@ -39,6 +45,8 @@ from torch import nn
 
 from datamodules.errors import ConfigError
 from datamodules.features import SPEED_OF_SOUND, IncrementalPhase, PhaseRecipe
+from datamodules.features.clock_calibration import ClockCalibration, ClockCalibrationError, estimate_clock_offsets
+from datamodules.formats.node_audio import warn_unshared_clocks
 from datamodules.streams import AudioSource
 from zoo.deploy.tracking import (
     HOP_SECONDS,
@@ -59,6 +67,8 @@ PHASE_NETS = ("srp_phat", "phase_student")
 #: path difference (m) the wavefront's curvature must reach across the array at the region's far edge for its
 #: range to be resolved: one lag of the recipe is 14.5 mm of path at 24 kHz
 MIN_CURVATURE_LAGS = 1.0
+#: seconds of the stream whose audio calibrates the clocks of nodes that do not share one
+CLOCK_SECONDS = 30.0
 
 
 # ============================================================================================ model
@@ -361,6 +371,44 @@ class PhaseMcapWriter(McapTrackWriter):
         self.stream.flush()
 
 
+# ============================================================================================ front end
+
+
+class CalibratingPhase(IncrementalPhase):
+    """:class:`~datamodules.features.IncrementalPhase` that estimates the nodes' clocks from the stream's first
+    ``seconds`` and corrects every later frame by them (see the module docstring)."""
+
+    def __init__(self, recipe: PhaseRecipe, sample_rate: float, mics: np.ndarray, seconds: float, name: str):
+        super().__init__(recipe, sample_rate, mics.shape[0])
+        self.mics, self.name = mics, name
+        self.needed = max(1, int(round(seconds * self.sample_rate)))
+        self._kept: list[np.ndarray] | None = []
+        self.calibration: ClockCalibration | None = None
+        self.calibrated_at: float | None = None  #: stream seconds from which frames are corrected
+
+    def push(self, block: np.ndarray) -> None:
+        super().push(block)
+        if self._kept is None:
+            return
+        self._kept.append(np.array(block, dtype=np.float32))
+        if self.end >= self.needed:
+            self._calibrate(np.concatenate(self._kept, axis=1)[:, :self.needed])
+
+    def _calibrate(self, samples: np.ndarray) -> None:
+        from datamodules.recording import ArrayAudio
+
+        self._kept = None
+        try:
+            clocks = estimate_clock_offsets(ArrayAudio(samples, self.sample_rate, 0.0, self.mics))
+        except ClockCalibrationError as error:
+            log.warning("%s: %s; the live positions keep the nodes' clock offsets (uncorrected)", self.name, error)
+            return
+        self.set_clocks(clocks)
+        self.calibration, self.calibrated_at = clocks, self.end / self.sample_rate
+        log.warning("%s: from %.1f s of the stream on, phase features corrected by the %s", self.name,
+                    self.calibrated_at, clocks.summary())
+
+
 # ============================================================================================ tracker
 
 
@@ -371,13 +419,25 @@ class PhaseTracker(Tracker):
         model: :func:`load_phase_model`.
         source, writers, lag, hop_seconds, batch: as for :class:`~zoo.deploy.tracking.Tracker`.
         preset: the online smoother's preset (default: the model's ``live_smoother`` preset, else ``robust``).
+        clock_seconds: for a source whose nodes do not share a clock, seconds of its start that calibrate
+            them (0: none, the rows carry the clocks' error).
     """
 
     frame_kind = "GCC-PHAT"
 
     def __init__(self, model: PhaseTrackingModel, source: AudioSource, writers: list[Any], lag: float = 0.0,
-                 preset: str | None = None, hop_seconds: float = HOP_SECONDS, batch: int = 1):
+                 preset: str | None = None, hop_seconds: float = HOP_SECONDS, batch: int = 1,
+                 clock_seconds: float = CLOCK_SECONDS):
         self.mics = check_geometry(model, source)
+        self.clock_seconds = float(clock_seconds) if not source.nodes_share_clock else 0.0
+        if not source.nodes_share_clock and self.clock_seconds > 0:
+            log.warning("%s: audio nodes on separate clocks: their offsets are estimated from the first %g s of "
+                        "the stream; rows before that use uncorrected time differences", source.name,
+                        self.clock_seconds)
+        else:
+            warn_unshared_clocks({"nodes_share_clock": source.nodes_share_clock,
+                                  "audio_alignment_uncertainty_s": source.alignment_uncertainty_s}, source.name,
+                                 f"live tracking with {model.name!r}")
         preset = preset or model.live_smoother.get("preset", "robust")
         super().__init__(model, source, writers, lag, preset, hop_seconds, batch)  # type: ignore[arg-type]
         self.window = self.front.window
@@ -386,6 +446,9 @@ class PhaseTracker(Tracker):
         prepare_threshold(model.net, self.mic_tensor.double())  # as the net keys the batch's geometry
 
     def front_end(self) -> IncrementalPhase:
+        if self.clock_seconds > 0:
+            return CalibratingPhase(self.model.recipe, self.source.sample_rate, self.mics,  # type: ignore[arg-type]
+                                    self.clock_seconds, self.source.name)
         return IncrementalPhase(self.model.recipe, self.source.sample_rate, self.source.channels)  # type: ignore[arg-type]
 
     def localise(self, features: torch.Tensor, times: list[float]) -> list[PhaseRow]:
