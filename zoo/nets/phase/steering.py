@@ -161,6 +161,16 @@ def gather(flat: torch.Tensor, columns: torch.Tensor, weights: torch.Tensor, wra
 
 
 @lru_cache(maxsize=4)
+def signed_differences(size: int, plus: torch.Tensor, minus: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """The size x D matrix whose column d is +1 at row ``plus[d]`` and -1 at row ``minus[d]``: a row vector
+    times it gives the D differences ``v[plus] - v[minus]``, exactly (each sum holds two non-zero terms)."""
+    columns = torch.arange(len(plus))
+    matrix = torch.zeros(size, len(plus), dtype=dtype)
+    matrix[plus, columns] = 1.0
+    matrix[minus, columns] = -1.0
+    return matrix
+
+
 def _block_pairs(blocks: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Every (later, earlier) pair of term blocks, ordered by the later block: (1, 0), (2, 0), (2, 1), ..."""
     pairs = [(t, e) for t in range(1, blocks) for e in range(t)]
@@ -268,10 +278,7 @@ class Steering:
         are always the leading entries of :meth:`terms`, so V and their count name them."""
         key = (distance.shape[1], len(first), distance.dtype)
         if key not in self._differences:
-            difference = torch.zeros(distance.shape[1], len(first), dtype=distance.dtype)
-            difference[first, torch.arange(len(first))] = 1.0
-            difference[second, torch.arange(len(first))] = -1.0
-            self._differences[key] = difference
+            self._differences[key] = signed_differences(distance.shape[1], first, second, distance.dtype)
         # one product with a +-1 matrix: each entry sums one distance, minus another and exact zeros, so it
         # equals the two columns' difference to the last bit (two index_selects and a subtraction cost more)
         delay = (distance @ self._differences[key]) / self.speed_of_sound
@@ -299,11 +306,9 @@ class Steering:
         key = (terms, pairs, position.dtype)
         if key not in self._block_differences:
             later, earlier = _block_pairs(blocks)
-            columns = torch.arange(len(later) * pairs).reshape(-1, pairs)
-            difference = torch.zeros(terms, len(later) * pairs, dtype=position.dtype)
-            difference[(later * pairs)[:, None] + torch.arange(pairs), columns] = 1.0
-            difference[(earlier * pairs)[:, None] + torch.arange(pairs), columns] = -1.0
-            self._block_differences[key] = difference
+            self._block_differences[key] = signed_differences(
+                terms, ((later * pairs)[:, None] + torch.arange(pairs)).flatten(),
+                ((earlier * pairs)[:, None] + torch.arange(pairs)).flatten(), position.dtype)
         width = self.recipe.lag_rate / self.recipe.f_max
         # every (later, earlier) block pair's difference in one product with a +-1 matrix (exact, as in
         # _lag_columns): block pairs x pairs per point
