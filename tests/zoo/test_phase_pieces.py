@@ -100,6 +100,39 @@ def test_cube_table_gives_the_columns_computed_afresh_and_starts_afresh_when_ful
     assert len(table.slots) == 2 and (2, 7) in table.slots and (1, 7) not in table.slots
 
 
+def test_a_filled_level_reads_every_parents_columns_as_computed_afresh():
+    mics = torch.tensor([[0.0, 0.0, 0.2], [3.0, 0.0, 0.7], [0.0, 3.0, 1.2], [3.0, 3.0, 1.7]], dtype=torch.float64)
+    steering = Steering(phase_recipe("gcc_phat_2s_static"))
+    offsets = torch.cartesian_prod(*[torch.tensor([-1.0, 0.0, 1.0])] * 3)
+    parents = torch.tensor([[2.0, 6.0, 4.0], [1.5, 2.0, 1.0], [5.5, 3.0, 1.0]])
+    sides = torch.tensor([[0.5], [0.25], [0.125]]).expand(-1, 27)
+    centres = parents[:, None, :] + offsets * sides[..., None]
+    lazy, filled = CubeColumns(steering, mics), CubeColumns(steering, mics)
+    filled.fill(0, centres, sides)
+    assert filled.filled(0) and not filled.filled(1) and not lazy.filled(0)
+    names = torch.tensor([2, 0, 2])
+    nowhere = torch.full_like(centres, float("nan"))  # a filled level never reads the cubes again
+    out = filled.children(0, names, nowhere, sides)
+    assert out.dtype == torch.long and torch.equal(out, lazy.children(0, names, centres[names], sides[names]))
+    assert filled.misses == 0 and filled.hits == 3
+
+
+def test_a_search_with_its_first_level_filled_finds_the_peaks_of_one_that_fills_its_table_as_it_goes(monkeypatch):
+    from zoo.registry import get_model
+
+    mics = torch.tensor([[0.0, 0.0, 0.2], [3.0, 0.0, 0.7], [0.0, 3.0, 1.2], [3.0, 3.0, 1.7]], dtype=torch.float64)
+    torch.manual_seed(0)
+    correlation = torch.rand(2, 3, 6, 697) ** 8  # a few sharp peaks per pair
+    prepared = get_model("srp_phat").search
+    prepared.prepare(mics)
+    filled = prepared.peaks(correlation, mics)
+    assert prepared.cubes(mics).filled(0)
+    monkeypatch.setattr(CubeColumns, "fill", lambda *args: None)
+    lazy = get_model("srp_phat").search
+    assert all(torch.equal(a, b) for a, b in zip(filled, lazy.peaks(correlation, mics), strict=True))
+    assert not lazy.cubes(mics).filled(0) and prepared.cubes(mics).misses < lazy.cubes(mics).misses
+
+
 def test_pooled_layouts_equal_max_pools_and_each_other():
     corr = torch.randn(3, 6, 141)
     rows, columns = pooled_layouts(corr)

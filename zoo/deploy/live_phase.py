@@ -241,6 +241,7 @@ def prepare_threshold(net: nn.Module, mics: torch.Tensor, path: Path | None = No
         stored = {}
     if isinstance(stored.get(key), float):
         net.set_threshold(mics, stored[key])
+        net.search.prepare(mics)  # the search's tables (computing the threshold builds them too)
         log.info("srp_phat: detection threshold %.4f from %s", stored[key], path)
         return
     stored[key] = net.threshold(mics)

@@ -116,6 +116,17 @@ class CandidateSearch:
             self._cubes[key] = CubeColumns(self.steering, mics)
         return self._cubes[key]
 
+    def prepare(self, mics: torch.Tensor) -> None:
+        """Build everything of the geometry that does not depend on the audio now (otherwise the first window
+        does): the coarse grid, its scoring matrix and the columns of every coarse cell's refinement cubes."""
+        grid, sides, _ = self.coarse_grid(mics)
+        self.coarse_matrix(mics)
+        table = self.cubes(mics)
+        if not table.filled(0):
+            steps = sides / 2  # as :meth:`refine` halves them, so the cubes are the same to the bit
+            children = self.clamp(grid[:, None, :] + OFFSETS * steps[:, None, None])
+            table.fill(0, children, steps[:, None].expand(-1, CHILDREN))
+
     def coarse_grid(self, mics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The coarse cells (centres G x 3 and sides G) and their columns in the flattened pooled
         correlations (G x pairs), computed once per geometry.
@@ -290,6 +301,7 @@ class CandidateSearch:
         corr = correlation.to(torch.float32).contiguous()
         groups = torch.tensor_split(torch.arange(f), min(self.search_groups, f))
         mean = torch.stack([corr[:, int(rows[0]):int(rows[-1]) + 1].mean(dim=1) for rows in groups], dim=1)
+        self.prepare(mics)
         grid, sides, _ = self.coarse_grid(mics)
         k = min(self.candidates, grid.shape[0])
         flat, flat_columns = pooled_layouts(mean.reshape(-1, p, lags))

@@ -206,9 +206,10 @@ class SRPPhat(TrajectoryNet):
         self._thresholds[mics.numpy().tobytes()] = float(value)
 
     def prepare(self, inputs: dict[str, torch.Tensor]) -> None:
-        """Compute the coarse grid and detection threshold of the inputs' geometry (otherwise the first call does)."""
+        """Build the search's tables and the detection threshold of the inputs' geometry (otherwise the first
+        call does)."""
         for geometry, _ in self.geometry_groups(inputs["audio_phase"], inputs.get("mic_positions")):
-            self.search.coarse_grid(geometry)
+            self.search.prepare(geometry)
             self.threshold(geometry)
 
     def geometry_groups(self, phase: torch.Tensor, mics_batch: torch.Tensor | None
