@@ -251,7 +251,7 @@ def test_a_nan_block_skips_exactly_the_windows_that_contain_it(quiet_recording, 
     assert all(np.isfinite(r.raw).all() for r in rows.rows)
 
 
-def test_track_cli_with_a_config_and_a_positions_file(quiet_recording, tmp_path, capsys):
+def test_track_cli_with_a_config_and_a_positions_file(quiet_recording, tmp_path, capsys, caplog):
     from scipy.io import wavfile
 
     from zoo.cli import main
@@ -268,6 +268,13 @@ def test_track_cli_with_a_config_and_a_positions_file(quiet_recording, tmp_path,
     assert "GCC-PHAT frames computed" in captured.err  # the end-of-run report names the phase front end's frames
     assert out[0] == "timestamp,x,y,z,std_x,std_y,std_z,raw_x,raw_y,raw_z,detection_score,detected,state"
     assert len(out) == 1 + 6 and out[1].split(",")[-1] in ("detected", "held", "fallback")
+    # channels from nodes on separate clocks (a WAV says nothing of clocks): calibrated from the first 2 s
+    with caplog.at_level(logging.INFO):
+        assert main(["track", "--config", str(config), "--audio", str(wav), "--mic-positions", str(mics),
+                     "--separate-clocks", "--clock-seconds", "2"]) == 0
+    assert "nodes on separate clocks: their offsets are estimated from the first 2 s" in caplog.text
+    assert "clock offsets" in caplog.text.split("estimated from the first 2 s", 1)[1]  # then estimated or refused
+    capsys.readouterr()
     miscounted = "3 microphone position(s) for 4 audio channel(s)"
     for args, message in (([], "pass --mic-positions FILE"), (["--mic-positions", str(wrong)], miscounted)):
         assert main(["track", "--config", str(config), "--audio", str(wav), *args]) == 2

@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 
 def open_source(audio: str, *, channels: int | None = None, rate: float | None = None, sample_format: str = "s16le",
                 mic_positions: str | Path | None = None, t0: float = 0.0, stall_timeout: float = 5.0,
-                realtime: bool = False) -> AudioSource:
+                realtime: bool = False, separate_clocks: bool = False) -> AudioSource:
     """The source ``audio`` names: ``-`` (raw PCM on stdin), a ``.wav`` file, or a recording.
 
     Args:
@@ -37,6 +37,8 @@ def open_source(audio: str, *, channels: int | None = None, rate: float | None =
         t0: time of the first sample of PCM and WAV audio (s).
         stall_timeout: seconds without data after which stdin counts as ended.
         realtime: recordings: deliver blocks at real-time pace.
+        separate_clocks: the channels come from audio nodes that do not share a clock (e.g. one WAV per node
+            joined), whatever the source says.
 
     Raises:
         ConfigError: raw PCM without ``channels`` or ``rate``.
@@ -44,19 +46,24 @@ def open_source(audio: str, *, channels: int | None = None, rate: float | None =
     """
     from datamodules.streams import PcmSource, RecordingSource, WavSource
 
+    source: AudioSource
     if audio == "-":
         missing = [flag for flag, value in (("--channels", channels), ("--rate", rate)) if value is None]
         if missing:
             raise ConfigError(f"raw PCM on stdin needs {' and '.join(missing)} (and --format, default s16le)")
-        return PcmSource(sys.stdin.buffer, channels, rate, sample_format, mic_positions, t0, stall_timeout)
-    path = Path(audio)
-    if not path.exists():
-        raise FileNotFoundError(f"{path}: no such audio file or recording")
-    if path.suffix.lower() == ".wav":
-        return WavSource(path, mic_positions, t0)
-    source = RecordingSource(path, realtime=realtime, mic_positions=mic_positions)
-    if mic_positions is not None and source.mic_source == "the recording":
-        log.info("%s: the recording's own microphone positions are used (--mic-positions ignored)", path)
+        source = PcmSource(sys.stdin.buffer, channels, rate, sample_format, mic_positions, t0, stall_timeout)
+    else:
+        path = Path(audio)
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: no such audio file or recording")
+        if path.suffix.lower() == ".wav":
+            source = WavSource(path, mic_positions, t0)
+        else:
+            source = RecordingSource(path, realtime=realtime, mic_positions=mic_positions)
+            if mic_positions is not None and source.mic_source == "the recording":
+                log.info("%s: the recording's own microphone positions are used (--mic-positions ignored)", path)
+    if separate_clocks:
+        source.nodes_share_clock = False
     return source
 
 
@@ -88,7 +95,7 @@ def run_track(args: argparse.Namespace) -> int:
     def source() -> AudioSource:
         return open_source(args.audio, channels=args.channels, rate=args.rate, sample_format=args.format,
                            mic_positions=args.mic_positions, t0=args.t0, stall_timeout=args.stall_timeout,
-                           realtime=args.realtime)
+                           realtime=args.realtime, separate_clocks=args.separate_clocks)
 
     if phase:  # the array first: a phase model is built for it and refuses unknown positions
         audio = source()
@@ -157,6 +164,9 @@ def add_command(sub: argparse._SubParsersAction) -> None:
                        help="phase models, recordings whose audio nodes do not share a clock: seconds of the "
                             "stream's start from which their offsets are estimated, then corrected (default 30; "
                             "0: not corrected)")
+    track.add_argument("--separate-clocks", action="store_true",
+                       help="phase models: the channels come from audio nodes on separate clocks (e.g. one WAV per "
+                            "node joined, or PCM from several devices): calibrate them as --clock-seconds says")
     pcm = track.add_argument_group("raw PCM on stdin and WAV files")
     pcm.add_argument("--channels", type=int, help="interleaved channels of the PCM stream")
     pcm.add_argument("--rate", type=float, help="sample rate of the PCM stream (Hz)")
