@@ -280,6 +280,8 @@ class PhaseRow:
 class GatedSmoothing:
     """The online smoother over the measured rows of a stream, the rows given back in time order.
 
+    Each measured row enters with its noise scaled by its detection score (the preset's
+    :meth:`~zoo.smoothing.RobustHyperparameters.noise_scale`; 1 for a row without a score).
     A measured row waits for its smoothed value (``lag`` seconds of later measurements, or until ``lag``
     seconds of stream pass without one); a held row then takes the latest smoothed position, its std grown
     by what the smoother's Matern-5/2 prior lets the track move in the time since (variance
@@ -312,7 +314,8 @@ class GatedSmoothing:
         self.queue.append(row)
         if row.measured:
             self.waiting[row.timestamp] = row
-            self._fill(self.smoother.update(row.timestamp, row.raw))
+            scale = self.smoother.hyperparameters.noise_scale(row.score)  # a weak peak: a noisier position
+            self._fill(self.smoother.update(row.timestamp, row.raw, scale))
             self.last_fed = row.timestamp
         elif self.waiting and self.last_fed is not None and row.timestamp - self.last_fed >= self.smoother.lag:
             self._fill(self.smoother.flush())  # no measurement for lag seconds: the waiting ones have their future

@@ -71,6 +71,10 @@ class RobustHyperparameters:
         std_scale: ``((lag_s, factor), ...)``: the posterior std is multiplied by ``factor`` (linear in
             lag between the listed lags, the last one beyond; ``inf`` is offline) so that 95 % of the
             truth falls in the 2-sigma band. Empty: no calibration (factor 1).
+        score_power, score_reference: a frame that comes with a detection score (a localiser's peak
+            response over its detection threshold) has its noise multiplied by
+            ``(score_reference / score) ** score_power`` (:meth:`noise_scale`): a weak peak is a less
+            certain position. 0 (the default): every frame has the preset's noise.
     """
 
     lengthscale: tuple[float, float, float]
@@ -78,6 +82,8 @@ class RobustHyperparameters:
     noise: tuple[float, float, float]
     dof: float
     std_scale: tuple[tuple[float, float], ...] = field(default=())
+    score_power: float = 0.0
+    score_reference: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("lengthscale", "outputscale", "noise"):
@@ -88,10 +94,20 @@ class RobustHyperparameters:
         if any(lag < 0 or not factor > 0 for lag, factor in pairs):
             raise ValueError(f"std_scale needs (lag >= 0, factor > 0) pairs, got {self.std_scale!r}")
         object.__setattr__(self, "std_scale", pairs)
+        if not (math.isfinite(self.score_power) and self.score_power >= 0):
+            raise ValueError(f"score_power must be finite and >= 0, got {self.score_power!r}")
+        if not (math.isfinite(self.score_reference) and self.score_reference > 0):
+            raise ValueError(f"score_reference must be positive and finite, got {self.score_reference!r}")
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Lengthscale, outputscale and noise as float64 arrays of shape (3,)."""
         return np.array(self.lengthscale), np.array(self.outputscale), np.array(self.noise)
+
+    def noise_scale(self, score: float) -> float:
+        """The factor on the noise of a frame with detection ``score`` (1 without a power or a positive score)."""
+        if self.score_power == 0 or not (math.isfinite(score) and score > 0):
+            return 1.0
+        return float((self.score_reference / score) ** self.score_power)
 
     def scale_for(self, lag: float) -> float:
         """The std calibration factor at ``lag`` seconds (``inf``: offline)."""
