@@ -140,6 +140,26 @@ def test_gated_smoothing_feeds_measurements_only_and_keeps_time_order():
     assert np.all(stds[0] > out[2].std)
 
 
+def test_a_weak_detection_moves_the_smoothed_track_less_when_the_preset_scales_noise_by_score():
+    """The gated smoother hands each detection's score to the smoother as a noise scale."""
+    from dataclasses import replace
+
+    plain = replace(ROBUST_PRESETS["srp_phat"], score_power=0.0)
+    scored = replace(plain, score_power=4.0, score_reference=5.0)
+
+    def last_mean(hp, score: float) -> np.ndarray:
+        gated = GatedSmoothing(OnlineSmoother(hp, lag=0.0))
+        out = []
+        for k in range(20):  # a steady track of typical detections, then one off it
+            out += gated.add(PhaseRow(0.1 * k, np.array([2.0, 10.0, 5.0]), 5.0, True, "detected"))
+        out += gated.add(PhaseRow(2.0, np.array([4.0, 13.0, 7.0]), score, True, "detected"))
+        return out[-1].mean
+
+    np.testing.assert_array_equal(last_mean(scored, 5.0), last_mean(plain, 5.0))  # a typical score: no change
+    weak, typical = last_mean(scored, 1.2), last_mean(plain, 1.2)
+    assert np.linalg.norm(weak - [2.0, 10.0, 5.0]) < 0.5 * np.linalg.norm(typical - [2.0, 10.0, 5.0])
+
+
 def test_a_phase_model_refuses_a_source_without_positions(quiet_recording):
     audio = open_recording(quiet_recording).audio
     pcm = (audio.read(0, 48000).T * 32767).astype("<i2").tobytes()
