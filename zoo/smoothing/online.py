@@ -201,6 +201,41 @@ class OnlineSmoother:
         rows += self._rows(int(np.searchsorted(self._solution[0], t - self.lag, side="right")))  # type: ignore[index]
         return rows
 
+    @property
+    def last_time(self) -> float | None:
+        """Time of the latest frame (None before the first)."""
+        return self._frames[-1][0] if self._frames else self._t
+
+    def predict(self, timestamp: float) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior mean and (calibrated) std of the position at ``timestamp``, a time with no frame, given
+        every frame so far at its current weight: between frames an interpolation, after the last one the
+        prior's extrapolation.
+
+        Raises:
+            ValueError: no frame yet, or a time before the committed state (frames already folded away).
+        """
+        t = float(timestamp)
+        if not self._frames or (self._t is not None and t < self._t):
+            raise ValueError(f"cannot predict at {timestamp!r} s: no frame yet or before the committed state")
+        times = np.array([f[0] for f in self._frames] + [t])
+        ys = np.array([f[1] for f in self._frames])
+        n = len(ys)
+        noise = self._noise * np.array(self._scales)[:, None] / np.array(self._weights)[:, None]
+        prior_mean, cov = self._prior(times)
+        mean, var = np.empty(3), np.empty(3)
+        for axis in range(3):
+            system = cov[axis, :n, :n].copy()
+            system.ravel()[:: n + 1] += noise[:, axis]
+            factor, info = lapack.dpotrf(system, lower=1, overwrite_a=1, clean=1)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"window covariance not positive definite (dpotrf info {info})")
+            cross = cov[axis, :n, n]
+            alpha, _ = lapack.dpotrs(factor, ys[:, axis] - prior_mean[:n, axis], lower=1)
+            half, _ = lapack.dtrtrs(factor, cross, lower=1)
+            mean[axis] = prior_mean[n, axis] + cross @ alpha
+            var[axis] = cov[axis, n, n] - half @ half
+        return mean + self._centre, np.sqrt(np.maximum(var, 0.0)) * self.scale
+
     def flush(self) -> list[OnlineRow]:
         """Emit every frame not yet emitted (with the future seen so far) and reset nothing else."""
         return self._rows(len(self._frames)) if self._solution is not None else []

@@ -270,6 +270,31 @@ def test_the_noise_scale_of_a_detection_score():
         replace(HP, score_reference=0.0)
 
 
+def test_predict_between_frames_is_the_exact_posterior_given_the_weights_and_noise_scales():
+    """The interpolation at a time without a frame equals the Kalman smoother over every frame so far, with
+    that time as an unobserved step, each frame at its last weight and its own noise scale."""
+    t, y, _, _ = track_with_outliers(70, seed=16)
+    scales = np.random.default_rng(17).uniform(0.2, 5.0, len(t))
+    online = OnlineSmoother(HP, lag=0.5, window=1.0, iterations=2)
+    last_weight: dict[float, float] = {}
+    for i in range(len(t)):
+        online.update(t[i], y[i], scales[i])
+        last_weight.update({frame[0]: w for frame, w in zip(online._frames, online._weights, strict=True)})
+    query = 0.5 * (t[-3] + t[-2])
+    mean, std = online.predict(query)
+    times = np.r_[t[:-2], query, t[-2:]]
+    observed = np.r_[np.ones(len(t) - 2, bool), False, True, True]
+    data = np.r_[y[:-2], np.zeros((1, 3)), y[-2:]] - y[0]
+    noise = np.r_[scales[:-2], 1.0, scales[-2:]][:, None] * HP.arrays()[2][None, :]
+    noise /= np.r_[[last_weight[v] for v in t[:-2]], 1.0, [last_weight[v] for v in t[-2:]]][:, None]
+    batch = Batch(times - t[0], data, observed, np.r_[True, np.zeros(len(times) - 1, bool)])
+    exact_mean, exact_var, _ = blocked_posterior(blocked_prior(batch, *HP.arrays()[:2]), noise)
+    np.testing.assert_allclose(mean, exact_mean[len(t) - 2] + y[0], atol=1e-8)
+    np.testing.assert_allclose(std, np.sqrt(exact_var[len(t) - 2]) * online.scale, rtol=1e-6)
+    with pytest.raises(ValueError, match="cannot predict"):
+        OnlineSmoother(HP).predict(0.0)
+
+
 # ------------------------------------------------------------------------------------------- fitting
 
 
