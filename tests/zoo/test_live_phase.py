@@ -164,7 +164,7 @@ def test_a_weak_detection_moves_the_smoothed_track_less_when_the_preset_scales_n
         out = []
         for k in range(20):  # a steady track of typical detections, then one off it
             out += gated.add(PhaseRow(0.1 * k, np.array([2.0, 10.0, 5.0]), 5.0, True, "detected"))
-        out += gated.add(PhaseRow(2.0, np.array([4.0, 13.0, 7.0]), score, True, "detected"))
+        out += gated.add(PhaseRow(2.0, np.array([2.1, 10.1, 5.1]), score, True, "detected"))  # within the noise
         return out[-1].mean
 
     np.testing.assert_array_equal(last_mean(scored, 5.0), last_mean(plain, 5.0))  # a typical score: no change
