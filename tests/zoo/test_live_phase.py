@@ -122,22 +122,54 @@ def test_rows_say_what_each_position_is(live_rows):
 
 
 def test_gated_smoothing_feeds_measurements_only_and_keeps_time_order():
-    """A fixed-lag smoother: a held row waits for the detection before it, and is written after it."""
-    gated = GatedSmoothing(OnlineSmoother("robust", lag=0.3))
-    out = []
+    """A fixed-lag smoother: a held row waits for the lag, and is written after the detection before it."""
     steps = [(0.1, "fallback"), (0.2, "detected"), (0.3, "detected"), (0.4, "held"), (0.5, "held"),
              (0.6, "held"), (0.7, "held"), (0.8, "detected")]
-    for t, state in steps:
-        out += gated.add(PhaseRow(t, np.array([t, 0.0, 5.0]), 2.0, state == "detected", state))
-        assert [r.timestamp for r in out] == sorted(r.timestamp for r in out)
-    assert [r.timestamp for r in out][:2] == [0.1, 0.2]
-    out += gated.flush()
-    assert [r.timestamp for r in out] == [t for t, _ in steps]
-    held = [r for r in out if r.state == "held"]
-    assert all(np.allclose(r.mean, out[2].mean) for r in held)  # the latest smoothed detection, 0.3 s
-    stds = [r.std for r in held]  # growing with the time since that detection
-    assert all(np.all(later > earlier) for earlier, later in zip(stds, stds[1:], strict=False))
-    assert np.all(stds[0] > out[2].std)
+
+    def run(lag: float, last_x: float = 0.8) -> list[PhaseRow]:
+        gated = GatedSmoothing(OnlineSmoother("robust", lag=lag))
+        out = []
+        for t, state in steps:
+            x = last_x if t == 0.8 else t
+            out += gated.add(PhaseRow(t, np.array([x, 0.0, 5.0]), 2.0, state == "detected", state))
+            assert [r.timestamp for r in out] == sorted(r.timestamp for r in out)
+        return out + gated.flush()
+
+    for lag in (0.0, 0.3):
+        out = run(lag)
+        assert [r.timestamp for r in out] == [t for t, _ in steps]
+        constant = [r for r in out if r.state == "held" and (lag == 0 or r.timestamp + lag < 0.8 - 1e-9)]
+        assert [r.timestamp for r in constant] == ([0.4, 0.5, 0.6, 0.7] if lag == 0 else [0.4])
+        assert all(np.allclose(r.mean, out[2].mean) for r in constant)  # the latest smoothed detection, 0.3 s
+        stds = [r.std for r in constant]  # growing with the time since that detection
+        assert all(np.all(later > earlier) for earlier, later in zip(stds, stds[1:], strict=False))
+        assert np.all(stds[0] > out[2].std)
+    out = run(0.3)  # held rows with the 0.8 s detection within their lag: the smoother's interpolation
+    x = [r.mean[0] for r in out[3:8]]
+    assert all(b > a for a, b in zip(x, x[1:], strict=False)), x  # the track moves on through the hold
+    beyond = run(0.3, last_x=5.0)  # a detection beyond a row's lag does not change it
+    np.testing.assert_array_equal(beyond[3].mean, out[3].mean)
+    assert not np.allclose(beyond[4].mean, out[4].mean)
+
+
+def test_a_weak_detection_moves_the_smoothed_track_less_when_the_preset_scales_noise_by_score():
+    """The gated smoother hands each detection's score to the smoother as a noise scale."""
+    from dataclasses import replace
+
+    plain = replace(ROBUST_PRESETS["srp_phat"], score_power=0.0)
+    scored = replace(plain, score_power=4.0, score_reference=5.0)
+
+    def last_mean(hp, score: float) -> np.ndarray:
+        gated = GatedSmoothing(OnlineSmoother(hp, lag=0.0))
+        out = []
+        for k in range(20):  # a steady track of typical detections, then one off it
+            out += gated.add(PhaseRow(0.1 * k, np.array([2.0, 10.0, 5.0]), 5.0, True, "detected"))
+        out += gated.add(PhaseRow(2.0, np.array([2.1, 10.1, 5.1]), score, True, "detected"))  # within the noise
+        return out[-1].mean
+
+    np.testing.assert_array_equal(last_mean(scored, 5.0), last_mean(plain, 5.0))  # a typical score: no change
+    weak, typical = last_mean(scored, 1.2), last_mean(plain, 1.2)
+    assert np.linalg.norm(weak - [2.0, 10.0, 5.0]) < 0.5 * np.linalg.norm(typical - [2.0, 10.0, 5.0])
 
 
 def test_a_phase_model_refuses_a_source_without_positions(quiet_recording):

@@ -14,8 +14,10 @@ std; ``raw_x, raw_y, raw_z`` the localiser's output (what ``aaute predict`` give
 (peak response over the detection threshold) and ``detected``; ``state``: ``detected`` (a counted
 detection), ``held`` (the last detection, within ``hold_seconds``), ``fallback`` (after the hold, or
 before the first detection) or ``estimate`` (``phase_student``, which always answers). Only measurements
-(``detected`` and ``estimate``) feed the smoother: a held row repeats the latest smoothed position and std,
-a fallback row carries the localiser's fallback position with std NaN (no measurement supports it).
+(``detected`` and ``estimate``) feed the smoother, each with its noise scaled by its score: a held row takes
+the smoother's interpolation when a measurement follows within the lag, else the latest smoothed position
+(its std grown with the time since); a fallback row carries the localiser's fallback position with std NaN
+(no measurement supports it).
 
 Geometry is never guessed: the source's positions must be known (the recording's, or ``--mic-positions``);
 their count must equal the channels (:class:`PhaseTracker` refuses otherwise); a sample rate below twice
@@ -281,17 +283,23 @@ class PhaseRow:
 class GatedSmoothing:
     """The online smoother over the measured rows of a stream, the rows given back in time order.
 
+    Each measured row enters with its noise scaled by its detection score (the preset's
+    :meth:`~zoo.smoothing.RobustHyperparameters.noise_scale`; 1 for a row without a score).
     A measured row waits for its smoothed value (``lag`` seconds of later measurements, or until ``lag``
-    seconds of stream pass without one); a held row then takes the latest smoothed position, its std grown
-    by what the smoother's Matern-5/2 prior lets the track move in the time since (variance
-    ``outputscale * (1 - rho(dt))`` per axis, ``rho`` the prior's correlation, times the calibration
-    factor squared); a fallback row keeps its own position with std NaN.
+    seconds of stream pass without one). A held row waits ``lag`` seconds of stream too: when a measurement
+    came within them, it takes the smoother's interpolation at its time (:meth:`OnlineSmoother.predict`,
+    from the measurements up to its time plus the lag, as a measured row does); otherwise (and always at
+    lag 0) it takes the latest smoothed position, its std grown by what the smoother's Matern-5/2 prior lets
+    the track move in the time since (variance ``outputscale * (1 - rho(dt))`` per axis, ``rho`` the
+    prior's correlation, times the calibration factor squared). A fallback row keeps its own position with
+    std NaN.
     """
 
     def __init__(self, smoother: OnlineSmoother):
         self.smoother = smoother
         self.queue: deque[PhaseRow] = deque()
         self.waiting: dict[float, PhaseRow] = {}
+        self.holding: deque[PhaseRow] = deque()  #: held rows waiting for ``lag`` seconds of stream
         self.last_fed: float | None = None
         self.latest: tuple[float, np.ndarray, np.ndarray] | None = None  #: time, mean, std of the last measured row
         lengthscale, outputscale, _ = smoother.hyperparameters.arrays()
@@ -308,27 +316,47 @@ class GatedSmoothing:
             target = self.waiting.pop(row.timestamp)
             target.mean, target.std, target.resolved = np.asarray(row.mean), np.asarray(row.std), True
 
+    def _settle(self, now: float | None) -> None:
+        """Resolve the held rows whose lag has passed by ``now`` (None: all), before a later row is fed."""
+        while self.holding and (now is None or now > self.holding[0].timestamp + self.smoother.lag):
+            row = self.holding.popleft()
+            last = self.smoother.last_time
+            if last is not None and last > row.timestamp:  # a measurement within the lag: interpolate
+                row.mean, row.std = self.smoother.predict(row.timestamp)
+                row.resolved = True
+
     def add(self, row: PhaseRow) -> list[PhaseRow]:
         """Take one row; return the rows now complete, in time order."""
+        self._settle(row.timestamp)
         self.queue.append(row)
         if row.measured:
             self.waiting[row.timestamp] = row
-            self._fill(self.smoother.update(row.timestamp, row.raw))
+            scale = self.smoother.hyperparameters.noise_scale(row.score)  # a weak peak: a noisier position
+            self._fill(self.smoother.update(row.timestamp, row.raw, scale))
             self.last_fed = row.timestamp
-        elif self.waiting and self.last_fed is not None and row.timestamp - self.last_fed >= self.smoother.lag:
+            return self._ready()
+        if row.state == "held" and self.smoother.lag > 0 and self.last_fed is not None:
+            self.holding.append(row)
+        if self.waiting and self.last_fed is not None and row.timestamp - self.last_fed >= self.smoother.lag:
             self._fill(self.smoother.flush())  # no measurement for lag seconds: the waiting ones have their future
         return self._ready()
 
     def flush(self) -> list[PhaseRow]:
         self._fill(self.smoother.flush())
+        self._settle(None)
         return self._ready()
 
     def _ready(self) -> list[PhaseRow]:
         out = []
-        while self.queue and (self.queue[0].resolved or not self.queue[0].measured):
-            row = self.queue.popleft()
+        while self.queue:
+            row = self.queue[0]
+            if not row.resolved and (row.measured or (self.holding and self.holding[0] is row)):
+                break  # waiting for its lag
+            self.queue.popleft()
             if row.measured:
                 self.latest = (row.timestamp, row.mean, row.std)
+            elif row.resolved:
+                pass  # a held row interpolated by the smoother
             elif row.state == "held" and self.latest is not None:
                 row.mean, row.std = self.latest[1], self.held_std(self.latest[2], row.timestamp - self.latest[0])
             else:

@@ -86,9 +86,10 @@ class OnlineSmoother:
         self._m = np.zeros((3, 3))  # committed filtered state (axis, state)
         self._P = P0.copy()
         self._t: float | None = None  # time of the committed state (None: the prior)
-        #: the window: (time, centred position) of each frame, oldest first, and their weights
+        #: the window: (time, centred position) of each frame, oldest first, their weights and noise scales
         self._frames: list[tuple[float, np.ndarray]] = []
         self._weights: list[float] = []
+        self._scales: list[float] = []
         self._solution: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._emitted = 0  # frames of the window already emitted
 
@@ -111,13 +112,14 @@ class OnlineSmoother:
         times = np.array([f[0] for f in self._frames])
         ys = np.array([f[1] for f in self._frames])
         w = np.array(self._weights)
+        frame_noise = self._noise * np.array(self._scales)[:, None]  # (W, 3): each frame's noise variance
         prior_mean, cov = self._prior(times)
         resid = ys - prior_mean
         dof = self.hyperparameters.dof
         mean, var = np.empty_like(ys), np.empty_like(ys)
         for _ in range(self.iterations):
             for axis in range(3):
-                noise = self._noise[axis] / w
+                noise = frame_noise[:, axis] / w
                 system = cov[axis].copy()
                 system.ravel()[:: len(w) + 1] += noise  # the diagonal, as a view
                 factor, info = lapack.dpotrf(system, lower=1, overwrite_a=1, clean=1)
@@ -129,7 +131,7 @@ class OnlineSmoother:
                 lower_inverse, _ = lapack.dtrtri(factor, lower=1, overwrite_c=1)
                 mean[:, axis] = ys[:, axis] - noise * alpha
                 var[:, axis] = noise - noise * noise * np.einsum("ki,ki->i", lower_inverse, lower_inverse)
-            sq = (((ys - mean) ** 2 + var) / self._noise).sum(axis=1)
+            sq = (((ys - mean) ** 2 + var) / frame_noise).sum(axis=1)
             w = (dof + 3.0) / (dof + sq)
         self._weights = list(w)
         self._solution = (times, mean, var, w)
@@ -150,33 +152,39 @@ class OnlineSmoother:
         drop = 0
         while drop < self._emitted and self._frames[drop][0] < now - self.lag - self.window:
             drop += 1
-        for (t, y), w in zip(self._frames[:drop], self._weights[:drop], strict=True):
+        for (t, y), w, scale in zip(self._frames[:drop], self._weights[:drop], self._scales[:drop], strict=True):
             if self._t is None:
                 m, P = np.zeros((3, 3)), self._P0
             else:
                 A = self._transition(np.array([t - self._t]))[0]
                 m = np.einsum("bij,bj->bi", A, self._m)
                 P = self._P0 - A @ (self._P0 - self._P) @ A.transpose(0, 2, 1)  # A P A^T + Q
-            gain = P[:, :, 0] / (P[:, 0, 0] + self._noise / w)[:, None]
+            gain = P[:, :, 0] / (P[:, 0, 0] + self._noise * scale / w)[:, None]
             self._m = m + gain * (y - m[:, 0])[:, None]
             P = P - gain[:, :, None] * P[:, None, 0, :]
             self._P, self._t = 0.5 * (P + P.transpose(0, 2, 1)), t
         if drop:
             del self._frames[:drop]
             del self._weights[:drop]
+            del self._scales[:drop]
             self._emitted -= drop
             self._solution = None
 
-    def update(self, timestamp: float, xyz: Sequence[float]) -> list[OnlineRow]:
+    def update(self, timestamp: float, xyz: Sequence[float], noise_scale: float = 1.0) -> list[OnlineRow]:
         """Add one frame (time in seconds, position in metres) and return the rows now ready.
 
+        ``noise_scale`` multiplies the preset's noise variance for this frame alone (a measurement known to
+        be better or worse than the typical one; 1: the preset's noise).
+
         Raises:
-            ValueError: a time not after the previous frame's, or a non-finite value.
+            ValueError: a time not after the previous frame's, a non-finite value or a noise scale <= 0.
         """
         t = float(timestamp)
         y = np.asarray(xyz, dtype=np.float64).reshape(3)
         if not (math.isfinite(t) and np.all(np.isfinite(y))):
             raise ValueError(f"frame at {timestamp!r}: time and position must be finite, got {xyz!r}")
+        if not (math.isfinite(noise_scale) and noise_scale > 0):
+            raise ValueError(f"frame at {timestamp!r}: noise_scale must be positive and finite, got {noise_scale!r}")
         last = self._frames[-1][0] if self._frames else self._t
         if last is not None and not t > last:
             raise ValueError(f"frame at {t!r} s is not after the previous frame ({last!r} s)")
@@ -188,9 +196,45 @@ class OnlineSmoother:
         self._commit(t)
         self._frames.append((t, y - self._centre))
         self._weights.append(1.0)
+        self._scales.append(float(noise_scale))
         self._solve()
         rows += self._rows(int(np.searchsorted(self._solution[0], t - self.lag, side="right")))  # type: ignore[index]
         return rows
+
+    @property
+    def last_time(self) -> float | None:
+        """Time of the latest frame (None before the first)."""
+        return self._frames[-1][0] if self._frames else self._t
+
+    def predict(self, timestamp: float) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior mean and (calibrated) std of the position at ``timestamp``, a time with no frame, given
+        every frame so far at its current weight: between frames an interpolation, after the last one the
+        prior's extrapolation.
+
+        Raises:
+            ValueError: no frame yet, or a time before the committed state (frames already folded away).
+        """
+        t = float(timestamp)
+        if not self._frames or (self._t is not None and t < self._t):
+            raise ValueError(f"cannot predict at {timestamp!r} s: no frame yet or before the committed state")
+        times = np.array([f[0] for f in self._frames] + [t])
+        ys = np.array([f[1] for f in self._frames])
+        n = len(ys)
+        noise = self._noise * np.array(self._scales)[:, None] / np.array(self._weights)[:, None]
+        prior_mean, cov = self._prior(times)
+        mean, var = np.empty(3), np.empty(3)
+        for axis in range(3):
+            system = cov[axis, :n, :n].copy()
+            system.ravel()[:: n + 1] += noise[:, axis]
+            factor, info = lapack.dpotrf(system, lower=1, overwrite_a=1, clean=1)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"window covariance not positive definite (dpotrf info {info})")
+            cross = cov[axis, :n, n]
+            alpha, _ = lapack.dpotrs(factor, ys[:, axis] - prior_mean[:n, axis], lower=1)
+            half, _ = lapack.dtrtrs(factor, cross, lower=1)
+            mean[axis] = prior_mean[n, axis] + cross @ alpha
+            var[axis] = cov[axis, n, n] - half @ half
+        return mean + self._centre, np.sqrt(np.maximum(var, 0.0)) * self.scale
 
     def flush(self) -> list[OnlineRow]:
         """Emit every frame not yet emitted (with the future seen so far) and reset nothing else."""

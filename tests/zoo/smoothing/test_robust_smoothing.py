@@ -236,6 +236,65 @@ def test_the_window_solve_is_the_exact_posterior_given_the_weights():
     np.testing.assert_allclose(window_var, var[window], atol=1e-10)
 
 
+def test_a_frames_noise_scale_sets_how_far_it_pulls_the_estimate():
+    """Scale 1 is the preset's noise exactly; a larger scale (a weaker measurement) pulls the estimate less."""
+    t, y, _, _ = track_with_outliers(60, seed=15, noise=0.1)
+    def last(scale: float | None, offset: float) -> object:
+        smoother = OnlineSmoother(HP, lag=0.0)
+        for i in range(len(t) - 1):
+            smoother.update(t[i], y[i])
+        frame = y[-1] + offset * np.array([1.0, -1.0, 1.0])  # the last frame moved off the track
+        return (smoother.update(t[-1], frame) if scale is None else smoother.update(t[-1], frame, scale))[0]
+
+    rows = [last(None, 0.3), last(1.0, 0.3), last(100.0, 0.3), last(0.01, 0.3)]
+    np.testing.assert_array_equal(rows[0].mean, rows[1].mean)
+    pull = [np.linalg.norm(r.mean - last(s, 0.0).mean) for r, s in zip(rows, (None, 1.0, 100.0, 0.01), strict=True)]
+    assert pull[2] < 0.5 * pull[0] < pull[0] < pull[3]
+    assert np.all(rows[2].std > rows[0].std)
+    for bad in (0.0, -1.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="noise_scale"):
+            OnlineSmoother(HP).update(0.0, [0, 0, 0], bad)
+
+
+def test_the_noise_scale_of_a_detection_score():
+    from dataclasses import replace
+
+    assert HP.noise_scale(3.0) == 1.0  # no score power: every frame has the preset's noise
+    scored = replace(HP, score_power=4.0, score_reference=5.0)
+    assert scored.noise_scale(5.0) == 1.0
+    assert scored.noise_scale(2.5) == pytest.approx(16.0) and scored.noise_scale(10.0) == pytest.approx(1 / 16)
+    assert scored.noise_scale(float("nan")) == 1.0  # a row without a score (phase_student)
+    with pytest.raises(ValueError, match="score_power"):
+        replace(HP, score_power=-1.0)
+    with pytest.raises(ValueError, match="score_reference"):
+        replace(HP, score_reference=0.0)
+
+
+def test_predict_between_frames_is_the_exact_posterior_given_the_weights_and_noise_scales():
+    """The interpolation at a time without a frame equals the Kalman smoother over every frame so far, with
+    that time as an unobserved step, each frame at its last weight and its own noise scale."""
+    t, y, _, _ = track_with_outliers(70, seed=16)
+    scales = np.random.default_rng(17).uniform(0.2, 5.0, len(t))
+    online = OnlineSmoother(HP, lag=0.5, window=1.0, iterations=2)
+    last_weight: dict[float, float] = {}
+    for i in range(len(t)):
+        online.update(t[i], y[i], scales[i])
+        last_weight.update({frame[0]: w for frame, w in zip(online._frames, online._weights, strict=True)})
+    query = 0.5 * (t[-3] + t[-2])
+    mean, std = online.predict(query)
+    times = np.r_[t[:-2], query, t[-2:]]
+    observed = np.r_[np.ones(len(t) - 2, bool), False, True, True]
+    data = np.r_[y[:-2], np.zeros((1, 3)), y[-2:]] - y[0]
+    noise = np.r_[scales[:-2], 1.0, scales[-2:]][:, None] * HP.arrays()[2][None, :]
+    noise /= np.r_[[last_weight[v] for v in t[:-2]], 1.0, [last_weight[v] for v in t[-2:]]][:, None]
+    batch = Batch(times - t[0], data, observed, np.r_[True, np.zeros(len(times) - 1, bool)])
+    exact_mean, exact_var, _ = blocked_posterior(blocked_prior(batch, *HP.arrays()[:2]), noise)
+    np.testing.assert_allclose(mean, exact_mean[len(t) - 2] + y[0], atol=1e-8)
+    np.testing.assert_allclose(std, np.sqrt(exact_var[len(t) - 2]) * online.scale, rtol=1e-6)
+    with pytest.raises(ValueError, match="cannot predict"):
+        OnlineSmoother(HP).predict(0.0)
+
+
 # ------------------------------------------------------------------------------------------- fitting
 
 
