@@ -23,9 +23,9 @@ from typing import Any
 
 from benchmarks.jobfolder import JobFolderBusy, clear_for_rerun
 from benchmarks.jobs import base_row, run_job
-from benchmarks.memory import DEFAULT_JOB_GB, expected_peaks, next_job, wait_message
 from benchmarks.register import register_job_weights
 from benchmarks.results import append_rows, read_results
+from benchmarks.scheduling import DEFAULT_JOB_GB, expected_peaks, longest_first, next_job, wait_message
 from benchmarks.suite import JobSpec, Suite, check_job_args, expand_jobs
 
 log = logging.getLogger(__name__)
@@ -151,10 +151,10 @@ def _progress(summary: RunSummary, running: int, pending: int, start: float) -> 
 
 def launch_jobs(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary: RunSummary,
             poll_seconds: float = 1.0) -> None:
-    """Run ``jobs`` at most ``parallel`` at once within the memory budget; append each row as its job ends.
+    """Run ``jobs`` at most ``parallel`` at once, within the memory budget; append each row as its job ends.
 
-    The budget (``launcher.memory_gb``, :mod:`benchmarks.memory`) applies to the local and debug launchers;
-    on Slurm the scheduler keeps the nodes' memory (ask for it with ``launcher.slurm: {mem: ...}``).
+    The start order and the budget (``launcher.memory_gb``, :mod:`benchmarks.scheduling`) are the local and
+    debug launchers'; on Slurm its scheduler keeps the nodes' memory (``launcher.slurm: {mem: ...}``).
     """
     start = time.perf_counter()
     if kind == "slurm":  # one array; Slurm keeps the limit and its states drive the progress line
@@ -168,10 +168,11 @@ def launch_jobs(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, sum
         return
     budget = suite.launcher["memory_gb"]
     peaks = expected_peaks(jobs, suite.results_path, suite.launcher["job_memory_gb"] or DEFAULT_JOB_GB)
+    pending = longest_first(jobs, suite.results_path)
     if budget is not None and parallel > 1:
         log.info("memory budget %g GB for %d jobs at once; expected peaks: %s", budget, parallel,
-                 ", ".join(f"{job.job_id} {peaks[job.job_id].gb:.1f} GB ({peaks[job.job_id].source})" for job in jobs))
-    pending = list(jobs)
+                 ", ".join(f"{job.job_id} {peaks[job.job_id].gb:.1f} GB ({peaks[job.job_id].source})"
+                           for job in pending))
     running: dict[str, tuple[JobSpec, Any]] = {}
     waiting: set[str] = set()  # jobs already said to wait for memory
     while pending or running:

@@ -31,7 +31,7 @@ fails before anything trains. The keys (all paths relative to the working direct
                                           # memory_gb: its expected peak until a run has measured one
     profile: {min_run_time: 0.5, throughput_batch: 64}   # or false
     launcher: {kind: local, parallel: 2, threads_per_job: 1, timeout_min: 120,
-               memory_gb: 4, job_memory_gb: 1.5,   # local jobs' summed expected peaks (benchmarks/memory.py)
+               memory_gb: 4, job_memory_gb: 1.5,   # local jobs' summed expected peaks (benchmarks/scheduling.py)
                slurm: {partition: gpu, gpus_per_node: 1, cpus_per_task: 8}}
 
 ``memory_gb``, ``job_memory_gb`` and ``budget_note`` are not part of a job's identity (its id and

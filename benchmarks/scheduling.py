@@ -1,29 +1,30 @@
-"""A memory budget for a suite's local jobs, the way a cluster scheduler keeps one.
+"""Which of a suite's local jobs starts next: longest first, within a memory budget, as a cluster scheduler does.
 
-Each job has an expected peak: the resident memory it reached when it last ran (``peak_rss_mb`` of its
-newest row with one in the suite's ``results.csv``), else the suite's hint for its model (``memory_gb:``
-beside the model), else ``launcher.job_memory_gb``. A job starts only if the expected peaks of the running
-jobs plus its own fit ``launcher.memory_gb``; a job alone always starts, however large.
+Order: jobs that an earlier run of the suite timed (``wall_time_s`` of their newest ``ok`` row in its
+``results.csv``) go longest first, so the parallel lanes finish together; jobs never timed go before them, in
+the suite's order (the suite lists its longest first).
 
-The jobs keep their order (the suite lists the longest first, so the lanes finish together). When the next job
-does not fit beside the running ones it waits, and a later job may start in its place only if it fits now and
-would also fit beside the waiting one: so once the running jobs end, the waiting job starts, never passed over
-again (EASY backfilling, with memory instead of nodes). Peaks are resident set sizes: pages shared between
-processes (the libraries) count in each, so their sum errs high, which leaves room for the runner itself.
+Memory: each job has an expected peak, the resident memory it reached when it last ran (``peak_rss_mb`` of its
+newest row with one), else the suite's hint for its model (``memory_gb:`` beside the model), else
+``launcher.job_memory_gb``. A job starts only if the expected peaks of the running jobs plus its own fit
+``launcher.memory_gb``; a job alone always starts, however large. When the next job does not fit beside the
+running ones it waits, and a later job may start in its place only if it fits now and would also fit beside
+the waiting one: so once the running jobs end the waiting job starts, never passed over again (EASY
+backfilling, with memory instead of nodes). Peaks are resident set sizes: pages shared between processes (the
+libraries) count in each, so their sum errs high, which leaves room for the runner's own process.
 """
 
 from __future__ import annotations
 
-import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import pandas as pd
+
 from benchmarks.results import read_results
 from benchmarks.suite import JobSpec
-
-log = logging.getLogger(__name__)
 
 DEFAULT_JOB_GB = 1.5  #: expected peak of a job never run and without a hint (light jobs measured 1.1-1.3 GB)
 
@@ -36,25 +37,27 @@ class Peak:
     source: str  #: 'measured' (an earlier row), 'hint' (the suite's memory_gb) or 'default'
 
 
-def measured_peaks(results: Path) -> dict[tuple[str, str], float]:
-    """(suite, job_id) -> peak resident memory (GB) of the newest row that records one; {} without a file."""
+def _newest(results: Path, column: str, ok_only: bool) -> dict[tuple[str, str], float]:
+    """(suite, job_id) -> the positive value of ``column`` in the newest row that has one; {} without a file."""
     if not results.exists():
         return {}
     frame = read_results(results, check_values=False)  # a bad cell is the leaderboard's to refuse
-    peaks: dict[tuple[str, str], float] = {}
-    for suite, job_id, value in zip(frame["suite"], frame["job_id"], frame["peak_rss_mb"], strict=True):
-        if math.isfinite(value) and value > 0:
-            peaks[(suite, job_id)] = float(value) / 1024
-    return peaks
+    if ok_only:
+        frame = frame[frame["status"] == "ok"]
+    values: dict[tuple[str, str], float] = {}
+    for suite, job_id, value in zip(frame["suite"], frame["job_id"], frame[column], strict=True):
+        if not pd.isna(value) and math.isfinite(value) and value > 0:
+            values[(suite, job_id)] = float(value)
+    return values
 
 
 def expected_peaks(jobs: Sequence[JobSpec], results: Path, default_gb: float = DEFAULT_JOB_GB) -> dict[str, Peak]:
     """The expected peak of every job: measured in ``results`` (an earlier run), else its hint, else the default."""
-    measured = measured_peaks(results)
+    measured = _newest(results, "peak_rss_mb", ok_only=False)
     peaks = {}
     for job in jobs:
         if (job.suite, job.job_id) in measured:
-            peaks[job.job_id] = Peak(measured[(job.suite, job.job_id)], "measured")
+            peaks[job.job_id] = Peak(measured[(job.suite, job.job_id)] / 1024, "measured")
         elif job.memory_gb is not None:
             peaks[job.job_id] = Peak(float(job.memory_gb), "hint")
         else:
@@ -62,9 +65,15 @@ def expected_peaks(jobs: Sequence[JobSpec], results: Path, default_gb: float = D
     return peaks
 
 
+def longest_first(jobs: Sequence[JobSpec], results: Path) -> list[JobSpec]:
+    """``jobs`` in start order: those never timed in ``results`` first (the suite's order), then longest first."""
+    seconds = _newest(results, "wall_time_s", ok_only=True)
+    return sorted(jobs, key=lambda job: -seconds.get((job.suite, job.job_id), math.inf))
+
+
 def next_job(pending: Sequence[str], running: Sequence[str], peaks: Mapping[str, Peak],
              budget_gb: float | None) -> int | None:
-    """Index in ``pending`` (job ids, in priority order) of the job to start now, or None to wait.
+    """Index in ``pending`` (job ids, in start order) of the job to start now, or None to wait.
 
     ``running``: the ids of the running jobs (the caller keeps their number below its parallel limit).
     Without a budget the first pending job starts.
