@@ -61,17 +61,15 @@ def _model_clause(name: str, curve: pd.DataFrame, constant: float | None) -> str
     text = f"{name} {first['E']:.2f} m at {_windows(first['windows'])} windows"
     if len(curve) > 1:
         text += f" to {last['E']:.2f} m at {_windows(last['windows'])}"
-    if len(curve) > 2 and best["windows"] != last["windows"] and best["windows"] != first["windows"]:
-        text += f" (best {best['E']:.2f} m at {_windows(best['windows'])})"
     if constant is None:
-        return text
+        return f"{text} (best {best['E']:.2f} m at {_windows(best['windows'])})"
+    text += f" (best {best['E']:.2f} m at {_windows(best['windows'])}, {best['E'] / constant:.2f} × the constant)"
     below = curve[curve["E"] < constant]
     if below.empty:
         return f"{text}: not below the constant at any size"
     if len(below) == len(curve):
         return f"{text}: below the constant at every size"
-    sizes = ", ".join(_windows(value) for value in below["windows"])
-    return f"{text}: below the constant at {sizes} windows only"
+    return f"{text}: below the constant at {', '.join(_windows(value) for value in below['windows'])} windows"
 
 
 def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, str], light: str = "ideal") -> str:

@@ -86,9 +86,10 @@ def test_the_table_caption_states_the_learning_curves_of_its_models(tmp_path, ca
     caption = first.split("## Table 1:", 1)[1].split("\n| ", 1)[0]
     assert "Learning curves (suite learning: 30 flights; protocol by_sequence" in caption
     assert "constant (mean train GT) 11.50 m, physical limit (CRLB, RMS) 0.30 m" in caption
-    assert "Ours (student) 14.70 m at 180 windows to 12.80 m at 1800: not below the constant at any size" in caption
-    assert "AudioNet 12.30 m at 180 windows to 11.60 m at 1800 (best 11.00 m at 450): below the constant at 450 " \
-           "windows only" in caption
+    assert ("Ours (student) 14.70 m at 180 windows to 12.80 m at 1800 (best 12.80 m at 1800, 1.11 × the constant): "
+            "not below the constant at any size") in caption
+    assert ("AudioNet 12.30 m at 180 windows to 11.60 m at 1800 (best 11.00 m at 450, 0.96 × the constant): below "
+            "the constant at 450 windows;") in caption
     assert "phase_student" not in caption  # not a row of this table
     assert "Learning curves" not in second  # the learning suite's protocol is by_sequence alone
     plain = tmp_path / "plain"
