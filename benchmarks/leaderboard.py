@@ -328,8 +328,7 @@ def _section_tables(number: int, title: str, rows: pd.DataFrame, stats: pd.DataF
     alert = "" if has_constant else ("NO CONSTANT BASELINE: this table has no constant-position row, so it cannot "
                                      "show whether the models learned anything (run the suite's constant jobs).")
     main = Table(str(number), title, _caption(rows, stats, protocol, learning), ["method", "category"],
-                 _main_columns(stats),
-                 [], alert, [_failed_note(row) for _, row in failed.iterrows()])
+                 _main_columns(stats), [], alert, [_failed_note(row) for _, row in failed.iterrows()])
     main.rows = _build_rows(stats, main.columns, lambda stat: [stat["display"], stat["category"]])
     tables = [main]
     breakdowns = (

@@ -150,7 +150,7 @@ def _progress(summary: RunSummary, running: int, pending: int, start: float) -> 
 
 
 def launch_jobs(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary: RunSummary,
-            poll_seconds: float = 1.0) -> None:
+                poll_seconds: float = 1.0) -> None:
     """Run ``jobs`` at most ``parallel`` at once, within the memory budget; append each row as its job ends.
 
     The start order and the budget (``launcher.memory_gb``, :mod:`benchmarks.scheduling`) are the local and
