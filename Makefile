@@ -16,9 +16,12 @@ $(VENV)/.installed: pyproject.toml constraints.txt
 	touch $@
 
 # the comparison table on simulated data: simulate, label, train and test every model, profile, render
+# (with the learning curves in the captions once configs/benchmark/learning.yaml has run)
+LEARNING := $(DEMO_OUT)/learning/results.csv
 demo: setup
 	$(BIN)/aaute benchmark --suite configs/benchmark/quick.yaml
-	$(BIN)/aaute leaderboard $(DEMO_OUT)/benchmark/results.csv --out $(DEMO_OUT)/leaderboard
+	$(BIN)/aaute leaderboard $(DEMO_OUT)/benchmark/results.csv --out $(DEMO_OUT)/leaderboard \
+		$(if $(wildcard $(LEARNING)),--learning $(LEARNING))
 
 test: setup
 	$(BIN)/python -m pytest

@@ -22,7 +22,8 @@ def _cmd_benchmark(args: argparse.Namespace) -> int:
     from benchmarks.runner import run_suite
     from benchmarks.suite import load_suite
 
-    suite = load_suite(args.suite, {"data.root": args.data_root, "out": args.out})
+    suite = load_suite(args.suite, {"data.root": args.data_root, "out": args.out,
+                                    "launcher.memory_gb": args.memory_gb})  # checked like the suite's own
     if args.parallel is not None:
         suite.raw.setdefault("launcher", {})["parallel"] = args.parallel
     summary = run_suite(suite, rerun=args.rerun, launcher=args.launcher, only=args.only or None)
@@ -57,6 +58,8 @@ def add_commands(sub: argparse._SubParsersAction, command: str | None = None) ->
     bench.add_argument("--out", help="output folder (overrides the suite's)")
     bench.add_argument("--launcher", choices=["local", "slurm", "debug"], help="overrides the suite's launcher")
     bench.add_argument("--parallel", type=int, help="jobs at once (overrides the suite's)")
+    bench.add_argument("--memory-gb", type=float, help="summed expected peak memory of the jobs running at once "
+                       "(overrides the suite's launcher.memory_gb)")
     bench.add_argument("--only", nargs="+", help="run only these job ids or models")
     bench.add_argument("--rerun", action="store_true", help="run finished jobs again")
     bench.set_defaults(func=_cmd_benchmark)

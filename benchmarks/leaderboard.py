@@ -273,8 +273,11 @@ def _smoother_sentence(rows: pd.DataFrame) -> str:
                                       for name, methods in groups.items()) + "."
 
 
-def _caption(rows: pd.DataFrame, stats: pd.DataFrame, protocol: str) -> str:
-    """What a reader needs to judge the table: protocol, data, budget, compute convention, seeds, machine."""
+def _caption(rows: pd.DataFrame, stats: pd.DataFrame, protocol: str, learning: str = "") -> str:
+    """What a reader needs to judge the table: protocol, data, budget, compute convention, seeds, machine.
+
+    ``learning``: the sentence on the table's models' learning curves (another suite's results), if given.
+    """
     parts = [f"Protocol {protocol}: {PROTOCOL_NOTES.get(protocol, 'not a known protocol')}."]
     if suites := _unique(rows, "suite"):
         parts.append(f"Suite {', '.join(suites)}.")
@@ -297,6 +300,8 @@ def _caption(rows: pd.DataFrame, stats: pd.DataFrame, protocol: str) -> str:
         parts.append(smoothers)
     if limit := bound_sentence(rows):
         parts.append(limit)
+    if learning:
+        parts.append(learning)
     commit = ", ".join(value[:12] for value in _unique(rows, "git_commit")) or "not recorded"
     dirty = " (dirty working tree)" if rows["git_dirty"].str.lower().isin(TRUE).any() else ""
     parts.append(f"Machine: cpu {_joined(rows, 'cpu')}; gpu {_joined(rows, 'gpu', 'none')}; "
@@ -317,13 +322,13 @@ def _failed_note(row: pd.Series) -> str:
 
 
 def _section_tables(number: int, title: str, rows: pd.DataFrame, stats: pd.DataFrame, protocol: str,
-                    failed: pd.DataFrame) -> list[Table]:
+                    failed: pd.DataFrame, learning: str = "") -> list[Table]:
     leaky = f"; {LEAKY_TITLE}" if protocol == "random_windows" else ""
     has_constant = (stats["kind"] == "constant").any()
     alert = "" if has_constant else ("NO CONSTANT BASELINE: this table has no constant-position row, so it cannot "
                                      "show whether the models learned anything (run the suite's constant jobs).")
-    main = Table(str(number), title, _caption(rows, stats, protocol), ["method", "category"], _main_columns(stats),
-                 [], alert, [_failed_note(row) for _, row in failed.iterrows()])
+    main = Table(str(number), title, _caption(rows, stats, protocol, learning), ["method", "category"],
+                 _main_columns(stats), [], alert, [_failed_note(row) for _, row in failed.iterrows()])
     main.rows = _build_rows(stats, main.columns, lambda stat: [stat["display"], stat["category"]])
     tables = [main]
     breakdowns = (
@@ -354,8 +359,22 @@ def _section_order(key: tuple[str, str, str], first_seen: dict) -> tuple:
     return first_seen[("suite", suite)], protocol_rank, protocol, first_seen[key]
 
 
-def build_sections(frame: pd.DataFrame) -> tuple[list[Section], pd.DataFrame]:
-    """The sections (one per suite x protocol x data fingerprint) and the failed rows no section claims."""
+def _learning_sentence(learning: pd.DataFrame | None, stats: pd.DataFrame, protocol: str) -> str:
+    """The caption's sentence on the learning curves of the table's trained models ('' without curves)."""
+    if learning is None:
+        return ""
+    from benchmarks.learning import learning_evidence  # matplotlib only where learning curves are given
+
+    trained = stats[stats["kind"] == "model"]
+    methods = dict(zip(trained["model"], trained["display"], strict=True))
+    return learning_evidence(learning, protocol, methods)
+
+
+def build_sections(frame: pd.DataFrame, learning: pd.DataFrame | None = None) -> tuple[list[Section], pd.DataFrame]:
+    """The sections (one per suite x protocol x data fingerprint) and the failed rows no section claims.
+
+    ``learning``: a learning suite's rows (newest per job); their curves are stated in the captions.
+    """
     ok = frame[frame["status"] == "ok"]
     entries = ok[ok["kind"].isin(["model", "constant", "bound"])]
     profiles = ok[ok["kind"] == "profile"]
@@ -388,7 +407,8 @@ def build_sections(frame: pd.DataFrame) -> tuple[list[Section], pd.DataFrame]:
             title += f" {fingerprint[:10] or '(no fingerprint)'}"
         if several_suites:
             title += f", suite {suite or '(none)'}"
-        tables = _section_tables(number, title, rows, stats, protocol, failed[mine])
+        tables = _section_tables(number, title, rows, stats, protocol, failed[mine],
+                                 _learning_sentence(learning, stats, protocol))
         sections.append(Section(number, suite, protocol, fingerprint, rows, stats, tables))
     return sections, failed[~claimed]
 
@@ -486,7 +506,8 @@ def _select(frame: pd.DataFrame, path: Path, suite: str | None) -> pd.DataFrame:
     return frame
 
 
-def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots: bool = True) -> LeaderboardReport:
+def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots: bool = True,
+                       learning: Path | None = None) -> LeaderboardReport:
     """Render ``results`` (a results.csv) into ``out``: Markdown, CSV, LaTeX, one HTML page and PNG plots.
 
     Args:
@@ -494,6 +515,8 @@ def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots
         out: the output folder (created).
         suite: only this suite's rows (default: all, one table per suite x protocol x data fingerprint).
         plots: draw the figures (prediction files that are missing skip their plot with a warning).
+        learning: a learning suite's results.csv (``configs/benchmark/learning.yaml``): each caption states
+            the learning curves of its table's models (E at each data size against that data's constant).
 
     Raises:
         ResultsError: the file is not a results.csv of this schema (missing columns, other version).
@@ -501,7 +524,12 @@ def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots
     """
     results, out = Path(results), Path(out)
     frame = _select(latest(read_results(results)), results, suite)
-    sections, orphans = build_sections(frame)
+    curves = None
+    if learning is not None:
+        from benchmarks.learning import read_learning
+
+        curves = read_learning(Path(learning))
+    sections, orphans = build_sections(frame, curves)
     warnings: list[str] = []
 
     def warn(message: str) -> None:
@@ -540,13 +568,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, help="output folder (default: 'leaderboard' beside RESULTS)")
     parser.add_argument("--suite", help="only this suite's rows (default: every suite, each in its own tables)")
     parser.add_argument("--no-plots", action="store_true", help="write the tables only")
+    parser.add_argument("--learning", type=Path, help="results.csv of a learning suite: each caption states its "
+                        "models' learning curves (E per data size against that data's constant)")
 
 
 def run(args: argparse.Namespace) -> int:
     """Render, print the Markdown tables and the HTML page's path; a bad input is one line and exit code 2."""
     out = args.out if args.out is not None else Path(args.results).parent / "leaderboard"
     try:
-        report = render_leaderboard(args.results, out, suite=args.suite, plots=not args.no_plots)
+        report = render_leaderboard(args.results, out, suite=args.suite, plots=not args.no_plots,
+                                    learning=args.learning)
     except (ResultsError, LeaderboardError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

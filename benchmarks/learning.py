@@ -4,7 +4,8 @@ The rows of a learning suite (``configs/benchmark/learning.yaml``: every model a
 are model rows like any other; this module groups them by model and draws E (ideal light, mean over seeds)
 against their training windows on a log axis, with the constant predictor (mean training ground truth) and the
 physical limit (CRLB) as horizontal lines. A curve that falls with data is limited by data; one flat at the
-constant, by what its inputs carry.
+constant, by what its inputs carry. ``aaute leaderboard ... --learning <this results.csv>`` states the curves of
+a table's models in its caption (:func:`learning_evidence`).
 
     python -m benchmarks.learning demo_out/learning/results.csv --out demo_out/learning/learning_curves.png
 """
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import pandas as pd
@@ -38,6 +39,65 @@ def reference_level(frame: pd.DataFrame, kind: str, light: str = "ideal") -> flo
         rows = rows[rows["method"].str.contains("GT", regex=False)]
     values = rows[f"E_{light}"].dropna()
     return float(values.mean()) if len(values) else None
+
+
+def read_learning(path: Path) -> pd.DataFrame:
+    """The newest rows of a learning suite's results.csv; a file without successful model rows is refused."""
+    frame = latest(read_results(path))
+    if not ((frame["kind"] == "model") & (frame["status"] == "ok")).any():
+        raise ResultsError(f"{path}: no successful model rows: no learning curves to state")
+    return frame
+
+
+def _windows(value: float) -> str:
+    return f"{value:.0f}"
+
+
+def _model_clause(name: str, curve: pd.DataFrame, constant: float | None) -> str:
+    """One model's curve in words: E at the smallest and largest size, its best, where it is below the constant."""
+    curve = curve.sort_values("windows")
+    first, last = curve.iloc[0], curve.iloc[-1]
+    best = curve.loc[curve["E"].idxmin()]
+    text = f"{name} {first['E']:.2f} m at {_windows(first['windows'])} windows"
+    if len(curve) > 1:
+        text += f" to {last['E']:.2f} m at {_windows(last['windows'])}"
+    if constant is None:
+        return f"{text} (best {best['E']:.2f} m at {_windows(best['windows'])})"
+    text += f" (best {best['E']:.2f} m at {_windows(best['windows'])}, {best['E'] / constant:.2f} × the constant)"
+    below = curve[curve["E"] < constant]
+    if below.empty:
+        return f"{text}: not below the constant at any size"
+    if len(below) == len(curve):
+        return f"{text}: below the constant at every size"
+    return f"{text}: below the constant at {', '.join(_windows(value) for value in below['windows'])} windows"
+
+
+def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, str], light: str = "ideal") -> str:
+    """A caption's sentence on the learning curves of ``methods`` (model -> name in the table), '' if none.
+
+    ``frame``: the rows of a learning suite's ``results.csv`` (newest per job). Each model is stated by its E
+    at the smallest and the largest data size, its best, and the sizes at which it is below the constant of the
+    same data, so a reader sees whether a row fails for lack of data or whatever the data.
+    """
+    rows = frame[frame["protocol"] == protocol]
+    points = curve_points(rows, light)
+    points = points[points["model"].isin(list(methods))]
+    if points.empty:
+        return ""
+    constant = reference_level(rows, "constant", light)
+    bound = reference_level(rows, "bound", light)
+    trained = rows[rows["kind"] == "model"]
+    suites = ", ".join(dict.fromkeys(trained["suite"].dropna().astype(str))) or "not recorded"
+    data = "; ".join(dict.fromkeys(trained["data"].dropna().astype(str))) or "data not recorded"
+    seeds = int(points["seeds"].max())
+    references = [f"constant (mean train GT) {constant:.2f} m" if constant is not None else "no constant row"]
+    if bound is not None:
+        references.append(f"physical limit (CRLB, RMS) {bound:.2f} m")
+    clauses = [_model_clause(name, points[points["model"] == model], constant)
+               for model, name in methods.items() if model in set(points["model"])]
+    return (f"Learning curves (suite {suites}: {data}; protocol {protocol}; E under {light} light, "
+            f"{'one seed' if seeds == 1 else f'mean over up to {seeds} seeds'} per size; its own "
+            f"{', '.join(references)}): {'; '.join(clauses)}.")
 
 
 def learning_figure(points: pd.DataFrame, constant: float | None, bound: float | None, title: str) -> Figure:

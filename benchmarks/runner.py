@@ -25,6 +25,7 @@ from benchmarks.jobfolder import JobFolderBusy, clear_for_rerun
 from benchmarks.jobs import base_row, run_job
 from benchmarks.register import register_job_weights
 from benchmarks.results import append_rows, read_results
+from benchmarks.scheduling import DEFAULT_JOB_GB, expected_peaks, longest_first, next_job, wait_message
 from benchmarks.suite import JobSpec, Suite, check_job_args, expand_jobs
 
 log = logging.getLogger(__name__)
@@ -148,9 +149,13 @@ def _progress(summary: RunSummary, running: int, pending: int, start: float) -> 
             f"{int(elapsed // 60):02d}:{int(elapsed % 60):02d}]")
 
 
-def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary: RunSummary,
-            poll_seconds: float = 1.0) -> None:
-    """Run ``jobs`` with at most ``parallel`` at once; append each row as its job ends."""
+def launch_jobs(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary: RunSummary,
+                poll_seconds: float = 1.0) -> None:
+    """Run ``jobs`` at most ``parallel`` at once, within the memory budget; append each row as its job ends.
+
+    The start order and the budget (``launcher.memory_gb``, :mod:`benchmarks.scheduling`) are the local and
+    debug launchers'; on Slurm its scheduler keeps the nodes' memory (``launcher.slurm: {mem: ...}``).
+    """
     start = time.perf_counter()
     if kind == "slurm":  # one array; Slurm keeps the limit and its states drive the progress line
         from benchmarks.slurm import run_on_slurm
@@ -161,11 +166,27 @@ def _launch(suite: Suite, jobs: list[JobSpec], parallel: int, kind: str, summary
 
         run_on_slurm(suite, jobs, parallel, run_job, finish)
         return
-    pending = list(jobs)
+    budget = suite.launcher["memory_gb"]
+    peaks = expected_peaks(jobs, suite.results_path, suite.launcher["job_memory_gb"] or DEFAULT_JOB_GB)
+    pending = longest_first(jobs, suite.results_path)
+    if budget is not None and parallel > 1:
+        log.info("memory budget %g GB for %d jobs at once; expected peaks: %s", budget, parallel,
+                 ", ".join(f"{job.job_id} {peaks[job.job_id].gb:.1f} GB ({peaks[job.job_id].source})"
+                           for job in pending))
     running: dict[str, tuple[JobSpec, Any]] = {}
+    waiting: set[str] = set()  # jobs already said to wait for memory
     while pending or running:
         while pending and len(running) < parallel:
-            job = pending.pop(0)
+            index = next_job([j.job_id for j in pending], list(running), peaks, budget)
+            if index is None or index > 0:
+                head = pending[0].job_id
+                if head not in waiting:
+                    waiting.add(head)
+                    log.info("%s %s", _progress(summary, len(running), len(pending), start),
+                             wait_message(head, list(running), peaks, budget))
+                if index is None:
+                    break
+            job = pending.pop(index)
             try:
                 clear_for_rerun(job.job_dir)  # an earlier run's files go aside; a live one stops this job
             except JobFolderBusy as error:
@@ -262,10 +283,10 @@ def run_suite(suite: Suite, rerun: bool = False, launcher: str | None = None, on
                  len(summary.skipped), len(jobs), suite.results_path)
     parallel = max(1, int(suite.launcher["parallel"]))
     stage = time.perf_counter()
-    _launch(suite, [j for j in todo if j.kind != "profile"], parallel, kind, summary)
+    launch_jobs(suite, [j for j in todo if j.kind != "profile"], parallel, kind, summary)
     summary.stages["train_test"] = time.perf_counter() - stage
     stage = time.perf_counter()
-    _launch(suite, [j for j in todo if j.kind == "profile"], 1, kind, summary)
+    launch_jobs(suite, [j for j in todo if j.kind == "profile"], 1, kind, summary)
     summary.stages["profile"] = time.perf_counter() - stage
     summary.seconds = time.perf_counter() - start
     return summary

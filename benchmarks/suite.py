@@ -26,11 +26,16 @@ fails before anything trains. The keys (all paths relative to the working direct
                                           # default true for simulated data, false for real
     models:
       - {model: student, config: configs/model/student.yaml, protocols: [by_sequence],
-         args: {trainer.max_epochs: 20}, budget_note: "", method: "", tag: ""}   # tag: tells apart two
-                                          # entries of one model (job id <model>_<tag>-<protocol>-s<seed>)
+         args: {trainer.max_epochs: 20}, budget_note: "", method: "", tag: "",   # tag: tells apart two
+         memory_gb: 1.4}                  # entries of one model (job id <model>_<tag>-<protocol>-s<seed>);
+                                          # memory_gb: its expected peak until a run has measured one
     profile: {min_run_time: 0.5, throughput_batch: 64}   # or false
     launcher: {kind: local, parallel: 2, threads_per_job: 1, timeout_min: 120,
+               memory_gb: 4, job_memory_gb: 1.5,   # local jobs' summed expected peaks (benchmarks/scheduling.py)
                slurm: {partition: gpu, gpus_per_node: 1, cpus_per_task: 8}}
+
+``memory_gb``, ``job_memory_gb`` and ``budget_note`` are not part of a job's identity (its id and
+configuration hash): changing them never makes a finished job run again.
 
 On Slurm, each stage's jobs go as one job array and ``launcher.parallel`` is its concurrency limit.
 A job asking for several devices trains with Lightning's DDP: under Slurm give ``ntasks_per_node``
@@ -57,8 +62,8 @@ from datamodules.errors import AauteError
 SUITE_KEYS = {"name", "description", "out", "data", "trainer", "protocols", "lights", "seeds", "smoothing",
               "constant", "models", "profile", "launcher", "expected_runtime", "bound"}
 DATA_KEYS = {"description", "kind", "config", "root", "simulate", "label", "init_args"}
-MODEL_KEYS = {"model", "config", "protocols", "args", "budget_note", "method", "tag"}
-LAUNCHER_KEYS = {"kind", "parallel", "threads_per_job", "timeout_min", "slurm"}
+MODEL_KEYS = {"model", "config", "protocols", "args", "budget_note", "method", "tag", "memory_gb"}
+LAUNCHER_KEYS = {"kind", "parallel", "threads_per_job", "timeout_min", "slurm", "memory_gb", "job_memory_gb"}
 LAUNCHERS = ("local", "slurm", "debug")
 CONSTANT_TARGETS = ("gt", "pseudo")
 
@@ -88,6 +93,7 @@ class JobSpec:
     job_dir: str
     threads: int
     budget_note: str = ""
+    memory_gb: float | None = None  #: the suite's hint of its peak memory (not part of its identity)
     target: str = ""  #: constant jobs: 'gt' or 'pseudo'
     data: dict[str, Any] = field(default_factory=dict)
     options: dict[str, Any] = field(default_factory=dict)  #: profile options
@@ -109,7 +115,8 @@ class Suite:
 
     @property
     def launcher(self) -> dict[str, Any]:
-        defaults = {"kind": "local", "parallel": 1, "threads_per_job": 1, "timeout_min": 720, "slurm": {}}
+        defaults = {"kind": "local", "parallel": 1, "threads_per_job": 1, "timeout_min": 720, "slurm": {},
+                    "memory_gb": None, "job_memory_gb": None}
         return {**defaults, **(self.raw.get("launcher") or {})}
 
     @property
@@ -203,6 +210,7 @@ def load_suite(path: str | Path, overrides: dict[str, Any] | None = None) -> Sui
             raise _fail(path, f"model {entry['model']!r}: unknown key(s) {unknown}; known: {sorted(MODEL_KEYS)}")
         if entry["model"] not in known:
             raise _fail(path, f"unknown model {entry['model']!r}; known models: {', '.join(known)}")
+        _check_gb(path, f"model {entry['model']!r}: memory_gb", entry.get("memory_gb"))
         for name in entry.get("protocols") or []:
             if name not in protocols:
                 raise _fail(path, f"model {entry['model']!r} names protocol {name!r}, which the suite does not "
@@ -212,12 +220,20 @@ def load_suite(path: str | Path, overrides: dict[str, Any] | None = None) -> Sui
     unknown = sorted(set(launcher) - LAUNCHER_KEYS)
     if unknown:
         raise _fail(path, f"unknown launcher key(s) {unknown}; known: {sorted(LAUNCHER_KEYS)}")
+    for key in ("memory_gb", "job_memory_gb"):
+        _check_gb(path, f"launcher.{key}", launcher.get(key))
     if launcher.get("kind", "local") not in LAUNCHERS:
         raise _fail(path, f"launcher.kind must be one of {list(LAUNCHERS)}, got {launcher.get('kind')!r}")
     for config in _config_files(raw):
         if not Path(config).is_file():
             raise _fail(path, f"config file {config} not found")
     return Suite(path, str(raw["name"]), Path(raw.get("out") or f"benchmark_out/{raw['name']}"), raw)
+
+
+def _check_gb(path: Path, what: str, value: Any) -> None:
+    """A memory figure is a positive number of GB (or absent)."""
+    if value is not None and (type(value) not in (int, float) or not value > 0 or value == float("inf")):
+        raise _fail(path, f"{what} must be a positive number of GB, got {value!r}")
 
 
 def _refuse_repeated_models(path: Path, models: list[dict[str, Any]], protocols: list[str]) -> None:
@@ -308,7 +324,7 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
                     method=entry.get("method") or METHOD_NAMES.get(name, name),
                     category=model_class(name).category, protocol=protocol, seed=seed, cli_args=args,
                     job_dir=str(suite.out / "jobs" / job_id), threads=threads,
-                    budget_note=entry.get("budget_note", ""), data=data_info,
+                    budget_note=entry.get("budget_note", ""), memory_gb=entry.get("memory_gb"), data=data_info,
                     config_hash=_hash("model", args, _file_digest(_job_configs(raw, entry)), data_fingerprint)))
             for target in raw.get("constant") or []:
                 args = model_args(suite, windows, protocol, seed)

@@ -59,3 +59,52 @@ def test_no_model_rows_is_one_line_and_exit_2(tmp_path, capsys):
     append_rows(results, [bound_row()])
     assert main([str(results), "--out", str(tmp_path / "x.png")]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def learning_rows() -> list[dict]:
+    """A learning suite's rows: the student never below the constant, AudioNet below it at one size."""
+    curve = {"student": (14.7, 13.5, 12.8), "audionet": (12.3, 11.0, 11.6), "phase_student": (10.2, 8.8, 7.8)}
+    rows = [_model(model, flights, flights * 90, error) for model, errors in curve.items()
+            for flights, error in zip((2, 5, 20), errors, strict=True)]
+    rows.append({**PROVENANCE, "kind": "constant", "job_id": "constant_gt-by_sequence-s0", "model": "constant",
+                 "method": "Constant (mean train GT)", "category": "reference", "protocol": "by_sequence",
+                 "seed": 0, "E_ideal": 11.5, "E_dark": 11.5})
+    return [{**row, "suite": "learning", "data": "30 flights"} for row in [*rows, bound_row()]]
+
+
+def test_the_table_caption_states_the_learning_curves_of_its_models(tmp_path, capsys):
+    from benchmarks.leaderboard import main as leaderboard_main
+    from tests.benchmarks.test_leaderboard import write_fixture
+
+    learning = tmp_path / "learning" / "results.csv"
+    append_rows(learning, learning_rows())
+    results = write_fixture(tmp_path / "run")
+    assert leaderboard_main([str(results), "--out", str(tmp_path / "board"), "--no-plots",
+                             "--learning", str(learning)]) == 0
+    markdown = (tmp_path / "board" / "leaderboard.md").read_text()
+    first, second = markdown.split("## Table 2", 1)
+    caption = first.split("## Table 1:", 1)[1].split("\n| ", 1)[0]
+    assert "Learning curves (suite learning: 30 flights; protocol by_sequence" in caption
+    assert "constant (mean train GT) 11.50 m, physical limit (CRLB, RMS) 0.30 m" in caption
+    assert ("Ours (student) 14.70 m at 180 windows to 12.80 m at 1800 (best 12.80 m at 1800, 1.11 × the constant): "
+            "not below the constant at any size") in caption
+    assert ("AudioNet 12.30 m at 180 windows to 11.60 m at 1800 (best 11.00 m at 450, 0.96 × the constant): below "
+            "the constant at 450 windows;") in caption
+    assert "phase_student" not in caption  # not a row of this table
+    assert "Learning curves" not in second  # the learning suite's protocol is by_sequence alone
+    plain = tmp_path / "plain"
+    assert leaderboard_main([str(results), "--out", str(plain), "--no-plots"]) == 0
+    assert "Learning curves" not in (plain / "leaderboard.md").read_text()
+    capsys.readouterr()
+
+
+def test_a_learning_file_without_model_rows_is_one_line_and_exit_2(tmp_path, capsys):
+    from benchmarks.leaderboard import main as leaderboard_main
+    from tests.benchmarks.test_leaderboard import write_fixture
+
+    learning = tmp_path / "learning.csv"
+    append_rows(learning, [bound_row()])
+    code = leaderboard_main([str(write_fixture(tmp_path / "run")), "--out", str(tmp_path / "b"), "--no-plots",
+                             "--learning", str(learning)])
+    error = capsys.readouterr().err
+    assert code == 2 and error.count("\n") == 1 and "no successful model rows" in error
