@@ -5,11 +5,6 @@ A terminal's Ctrl-C reaches every process of the group. Pool workers started wit
 and the parent, leaving the pool, terminates them at once; a terminated worker unwinds like an
 exception, so its temporary files are removed (see :mod:`datamodules.atomic`) and no finished file
 is touched.
-
-Workers are started by a fork server, not forked from the parent: the parent has threads by then
-(PyTorch's, the progress bar's monitor, a logging handler's), and a process forked while another thread
-holds a lock inherits the lock held forever, so a forked worker can hang at its first log line or
-allocation. The fork server is a clean single-threaded process; each worker imports what its task needs.
 """
 
 from __future__ import annotations
@@ -27,4 +22,4 @@ def _ignore_interrupt() -> None:
 
 def interruptible_pool(processes: int) -> Pool:
     """A process pool whose workers leave Ctrl-C to the parent; use it as a context manager (exit terminates)."""
-    return multiprocessing.get_context("forkserver").Pool(processes, initializer=_ignore_interrupt)
+    return multiprocessing.get_context().Pool(processes, initializer=_ignore_interrupt)
