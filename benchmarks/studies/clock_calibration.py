@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from benchmarks.studies.common import recordings_module, srp_phat_errors
+from benchmarks.studies.common import recordings_module, srp_phat_errors, true_clocks
 from datamodules.atomic import atomic_write
 from datamodules.features.clock_calibration import (
     ClockCalibration,
@@ -47,16 +47,6 @@ log = logging.getLogger(__name__)
 RECIPE = "gcc_phat_2s_static"
 TARGET_S = 5e-5  #: the issue's target: offsets within 0.05 ms of the truth
 GRID = 121  #: times over the recording at which the offset error is taken
-
-
-def true_clocks(meta: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """The nodes' true offsets (s, at the first sample) and drifts (ppm), relative to node 0."""
-    truth = meta.get("clocks_truth")
-    if truth is None:
-        raise ValueError("the recording has no clocks_truth (not simulated with separate node clocks)")
-    offsets = np.asarray(truth["effective_offsets_s"], dtype=np.float64)
-    drifts = np.asarray(truth["drifts_ppm"], dtype=np.float64)
-    return offsets - offsets[0], drifts - drifts[0]
 
 
 def offset_errors(estimate: ClockCalibration, offsets: np.ndarray, drifts: np.ndarray,
