@@ -10,7 +10,8 @@ the estimate (:class:`~zoo.deploy.live_phase.CalibratingPhase` without ``backgro
 exactly at ``S`` whatever the machine's load. Per flight and ``S`` it reports the offsets' error against the
 truth over the rest of the flight (node by node against node 0: at ``S`` and the largest after it) with the
 estimate's std, and the E (mean 3D error, m) of the raw localiser output and of the causal smoother on the rows
-after the correction began, on each clock setting over the same rows.
+after the correction began, on each clock setting over the same rows, and of the raw output from 10 s after it
+(``srp_phat`` holds a detection for up to 10 s, so the first seconds still show uncorrected ones).
 
 The cost: the estimate's CPU seconds (its thread's), and what a stream paced at real time would see around it.
 A replay gives each update's compute (block arrival to row); queueing those updates behind blocks that arrive
@@ -46,6 +47,7 @@ log = logging.getLogger(__name__)
 
 HOP = 0.1  #: seconds between rows (``aaute track``'s block)
 STALLED = 0.5  #: a row this many seconds after its block's arrival counts as held up
+SETTLE = 10.0  #: seconds after the correction starts from which E is also given (``srp_phat`` holds a detection 10 s)
 
 
 @dataclass
@@ -167,6 +169,8 @@ def flight(name: str, shared: Path, clocks: Path, seconds: list[float]) -> tuple
             inside, raw, smooth = errors(other, gt.timestamps, gt.xyz)
             keep = inside & after
             row[f"E_raw_{column}"], row[f"E_smooth_{column}"] = float(raw[keep].mean()), float(smooth[keep].mean())
+            settled = keep & (live.times - t0 >= front.calibrated_at + SETTLE)
+            row[f"E_settled_{column}"] = float(raw[settled].mean()) if settled.any() else float("nan")
         row["rows"] = int((after & errors(live, gt.timestamps, gt.xyz)[0]).sum())
         e_rows.append(row)
         log.warning("%s %s S=%g: E raw shared %.2f / uncalibrated %.2f / calibrated %.2f m; estimate %.1f s CPU",
@@ -209,8 +213,9 @@ def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
     """Pooled per condition and ``S``: flights calibrated, E (raw) on the rows after it on each clock setting
     (over the calibrated flights), offset errors and their std, estimate CPU and the queued stall."""
     lines = ["| condition | S | calibrated | E shared / uncalibrated / calibrated (raw, m) | smoothed (m) | "
+             "raw, from S + 10 s (m) | "
              "offset error at S: median / max (ms) | largest after S: max (ms) | within 1 / 2 std | "
-             "estimate CPU (s) | worst queued latency (s) |", "|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
+             "estimate CPU (s) | worst queued latency (s) |", "|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
     for (condition, s), group in e_frame.groupby(["condition", "clock_seconds"], sort=False):
         ok = group[group.status == "ok"]
         nodes = o_frame[(o_frame.condition == condition) & (o_frame.clock_seconds == s)] if len(o_frame) else o_frame
@@ -228,7 +233,8 @@ def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
         lines.append(f"| {condition} | {s:g} | {len(ok)} of {len(group)} | {pooled('E_raw_shared'):.2f} / "
                      f"{pooled('E_raw_uncalibrated'):.2f} / {pooled('E_raw_calibrated'):.2f} | "
                      f"{pooled('E_smooth_shared'):.2f} / {pooled('E_smooth_uncalibrated'):.2f} / "
-                     f"{pooled('E_smooth_calibrated'):.2f} | {offsets} | "
+                     f"{pooled('E_smooth_calibrated'):.2f} | {pooled('E_settled_shared'):.2f} / "
+                     f"{pooled('E_settled_uncalibrated'):.2f} / {pooled('E_settled_calibrated'):.2f} | {offsets} | "
                      f"{group.estimate_cpu_s.median():.1f} ({group.estimate_cpu_s.min():.1f}-"
                      f"{group.estimate_cpu_s.max():.1f}) | {group.worst_queued_s.max():.1f} |")
     return "\n".join(lines)
@@ -262,7 +268,8 @@ def main(argv: list[str] | None = None) -> None:
         print(summary(e_frame, o_frame), "", sep="\n")
         print(markdown(e_frame, {"condition": "", "recording": "", "drone": "", "clock_seconds": "g", "status": "",
                              "E_raw_shared": ".2f", "E_raw_uncalibrated": ".2f", "E_raw_calibrated": ".2f",
-                             "E_smooth_shared": ".2f", "E_smooth_calibrated": ".2f", "estimate_cpu_s": ".1f",
+                             "E_smooth_shared": ".2f", "E_smooth_calibrated": ".2f", "E_settled_shared": ".2f",
+                             "E_settled_calibrated": ".2f", "estimate_cpu_s": ".1f",
                              "compute_median_ms": ".1f", "update_at_s_ms": ".0f", "worst_queued_s": ".1f",
                              "stalled_s": ".1f"}), "", sep="\n")
     if len(o_frame):

@@ -39,12 +39,15 @@ def test_summary_pools_the_calibrated_flights_and_counts_the_refused():
     base = {"condition": "default", "clock_seconds": 30.0, "estimate_cpu_s": 5.0, "worst_queued_s": 5.2}
     e = pd.DataFrame([
         {**base, "status": "ok", "rows": 100, "E_raw_shared": 2.0, "E_raw_uncalibrated": 10.0, "E_raw_calibrated": 2.5,
-         "E_smooth_shared": 1.5, "E_smooth_uncalibrated": 9.0, "E_smooth_calibrated": 2.0},
+         "E_smooth_shared": 1.5, "E_smooth_uncalibrated": 9.0, "E_smooth_calibrated": 2.0,
+         "E_settled_shared": 1.0, "E_settled_uncalibrated": 8.0, "E_settled_calibrated": 1.0},
         {**base, "status": "ok", "rows": 300, "E_raw_shared": 4.0, "E_raw_uncalibrated": 14.0, "E_raw_calibrated": 4.5,
-         "E_smooth_shared": 3.5, "E_smooth_uncalibrated": 13.0, "E_smooth_calibrated": 4.0},
+         "E_smooth_shared": 3.5, "E_smooth_uncalibrated": 13.0, "E_smooth_calibrated": 4.0,
+         "E_settled_shared": 3.0, "E_settled_uncalibrated": 12.0, "E_settled_calibrated": 3.4},
         {**base, "status": "refused"}])
     o = pd.DataFrame([{"condition": "default", "clock_seconds": 30.0, "error_ms": err, "std_ms": 0.01,
                        "max_error_ms": abs(err) + 0.01} for err in (0.005, -0.015, 0.03)])
     line = summary(e, o).splitlines()[2]
-    assert line.startswith("| default | 30 | 2 of 3 | 3.50 / 13.00 / 4.00 | 3.00 / 12.00 / 3.50 | 0.015 / 0.030 |")
+    assert line.startswith("| default | 30 | 2 of 3 | 3.50 / 13.00 / 4.00 | 3.00 / 12.00 / 3.50 | "
+                           "2.50 / 11.00 / 2.80 | 0.015 / 0.030 |")
     assert "| 0.040 | 33% / 67% |" in line
