@@ -17,7 +17,10 @@ offset touches it. Per frame this estimator measures
 
 then fits one source position per frame and the offsets shared by all frames (node 0 = 0; optionally
 a drift per node) by robust least squares (:func:`scipy.optimize.least_squares`, soft-L1 loss). The
-uncertainty is a delete-a-block jackknife over contiguous blocks of frames.
+uncertainty is the cluster-robust sandwich of that fit over 2 s clusters of frames (the first-order
+delete-a-cluster jackknife); refits leaving out blocks of frames (``uncertainty="jackknife"``) start from the
+solution and stop at their iteration limit before they have moved as far as they would, so their spread is
+too small.
 
 Convention (as the simulator's ``clocks_truth``): node ``n``'s sample ``k`` is taken at true time
 ``k / fs * (1 + drift_n) + offset_n``, so its audio shows a sound ``offset_n + drift_n * t`` seconds
