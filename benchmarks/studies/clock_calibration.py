@@ -6,7 +6,7 @@ recorded on one shared clock, one with separate node clocks (``aaute simulate ..
 ``clocks_truth``, read here for evaluation only). For every recording on separate clocks the offsets are
 estimated from its audio (:func:`~datamodules.features.clock_calibration.estimate_clock_offsets` with the
 settings the DataModule uses) and compared with the truth, node by node relative to node 0: the error at
-the first sample and the largest error over the recording (offset and drift together); the jackknife
+the first sample and the largest error over the recording (offset and drift together); the estimate's
 uncertainty is set against the actual error. Then ``srp_phat`` (``configs/model/srp_phat.yaml``, recipe
 ``gcc_phat_2s_static``, the path of ``aaute test``) gives its E on the shared clock, on the separate clocks
 uncalibrated (``clock_calibration: off``) and self-calibrated (``auto``: what a recording that says
@@ -31,7 +31,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from benchmarks.studies.common import recordings_module, srp_phat_errors
+from benchmarks.studies.common import recordings_module, srp_phat_errors, true_clocks
 from datamodules.atomic import atomic_write
 from datamodules.features.clock_calibration import (
     ClockCalibration,
@@ -47,16 +47,6 @@ log = logging.getLogger(__name__)
 RECIPE = "gcc_phat_2s_static"
 TARGET_S = 5e-5  #: the issue's target: offsets within 0.05 ms of the truth
 GRID = 121  #: times over the recording at which the offset error is taken
-
-
-def true_clocks(meta: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """The nodes' true offsets (s, at the first sample) and drifts (ppm), relative to node 0."""
-    truth = meta.get("clocks_truth")
-    if truth is None:
-        raise ValueError("the recording has no clocks_truth (not simulated with separate node clocks)")
-    offsets = np.asarray(truth["effective_offsets_s"], dtype=np.float64)
-    drifts = np.asarray(truth["drifts_ppm"], dtype=np.float64)
-    return offsets - offsets[0], drifts - drifts[0]
 
 
 def offset_errors(estimate: ClockCalibration, offsets: np.ndarray, drifts: np.ndarray,
@@ -97,7 +87,7 @@ def error_table(offsets: pd.DataFrame) -> str:
     """Markdown: per condition, the distribution of the offset errors and the uncertainty against them."""
     lines = ["| condition | nodes x flights | calibrated | abs. error at start: median / 90 % / max | "
              "largest error over the flight: median / max | within 0.05 ms | abs. error / std: median | "
-             "within 2 std |", "|:--|--:|--:|--:|--:|--:|--:|--:|"]
+             "within 1 / 2 std |", "|:--|--:|--:|--:|--:|--:|--:|--:|"]
     for condition, group in offsets.groupby("condition", sort=False):
         ok = group[group.status == "ok"]
         first, worst = ok.error0_ms.abs(), ok.max_error_ms
@@ -105,7 +95,7 @@ def error_table(offsets: pd.DataFrame) -> str:
         lines.append(f"| {condition} | {len(group)} | {len(ok)} | {first.median():.3f} / {first.quantile(0.9):.3f} / "
                      f"{first.max():.3f} ms | {worst.median():.3f} / {worst.max():.3f} ms | "
                      f"{(worst <= 1e3 * TARGET_S).sum()} of {len(group)} | {ratio.median():.2f} | "
-                     f"{(ratio <= 2).mean():.0%} |")
+                     f"{(ratio <= 1).mean():.0%} / {(ratio <= 2).mean():.0%} |")
     return "\n".join(lines)
 
 

@@ -1,5 +1,5 @@
 """What more than one study uses: the learning checks' split, a DataModule over test recordings, ``srp_phat``'s
-error on them, live phase rows.
+error on them, live phase rows, a simulated recording's true node clocks.
 
 The studies never import one another; a helper that two of them share lives here.
 """
@@ -7,6 +7,7 @@ The studies never import one another; a helper that two of them share lives here
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -107,3 +108,13 @@ def live_rows(path: Path, config: Path, store: Path | None) -> tuple[list, str]:
                  score=[r.score for r in keep.rows], detected=[r.detected for r in keep.rows],
                  state=[r.state for r in keep.rows])
     return keep.rows, preset
+
+
+def true_clocks(meta: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """The nodes' true offsets (s, at the first sample) and drifts (ppm), relative to node 0."""
+    truth = meta.get("clocks_truth")
+    if truth is None:
+        raise ValueError("the recording has no clocks_truth (not simulated with separate node clocks)")
+    offsets = np.asarray(truth["effective_offsets_s"], dtype=np.float64)
+    drifts = np.asarray(truth["drifts_ppm"], dtype=np.float64)
+    return offsets - offsets[0], drifts - drifts[0]

@@ -17,7 +17,10 @@ offset touches it. Per frame this estimator measures
 
 then fits one source position per frame and the offsets shared by all frames (node 0 = 0; optionally
 a drift per node) by robust least squares (:func:`scipy.optimize.least_squares`, soft-L1 loss). The
-uncertainty is a delete-a-block jackknife over contiguous blocks of frames.
+uncertainty is the cluster-robust sandwich of that fit over 2 s clusters of frames (the first-order
+delete-a-cluster jackknife); refits leaving out blocks of frames (``uncertainty="jackknife"``) start from the
+solution and stop at their iteration limit before they have moved as far as they would, so their spread is
+too small.
 
 Convention (as the simulator's ``clocks_truth``): node ``n``'s sample ``k`` is taken at true time
 ``k / fs * (1 + drift_n) + offset_n``, so its audio shows a sound ``offset_n + drift_n * t`` seconds
@@ -87,6 +90,11 @@ class ClockCalibrationConfig:
     #: when one is ``drift_significance`` jackknife standard errors from zero (else refit the offsets alone)
     fit_drift: bool | None = None
     drift_significance: float = 3.0
+    #: how the offsets' standard errors are found: ``sandwich``, the cluster-robust sandwich of the robust fit
+    #: over clusters of ``cluster_seconds`` (a linearised delete-a-cluster jackknife: no refits), or
+    #: ``jackknife``, refits leaving out each of ``jackknife_blocks`` contiguous blocks of frames
+    uncertainty: str = "sandwich"
+    cluster_seconds: float = 2.0  #: the frames' residuals are correlated over less than a second (dev flights)
     jackknife_blocks: int = 5  #: blocks of the uncertainty's jackknife (0: none)
     max_residual: float = 3e-5  #: a fit whose robust residual RMS (s) is above this explains no source: refuse
     max_std: float = 3e-4  #: a fit with any offset's jackknife standard error (s) above this: refuse
@@ -311,6 +319,31 @@ class _Model:
         r_refl = self.m.reflection[frames] - (image - direct)
         return np.concatenate([r_tdoa.ravel(), r_refl.ravel()]) / sigma
 
+    def jacobian(self, theta: np.ndarray, frames: np.ndarray) -> np.ndarray:
+        """The residuals' Jacobian (rows as :meth:`residuals`, dense) at ``theta``."""
+        c, sigma, n = self.config.speed_of_sound, self.config.sigma, self.channels - 1
+        count, pairs = frames.size, len(self.first)
+        s = theta[self.clock_params:].reshape(-1, 3)
+        to_mic = s[:, None, :] - self.mics[None]
+        to_image = s[:, None, :] - self.images[None]
+        u = to_mic / np.linalg.norm(to_mic, axis=-1, keepdims=True) / (c * sigma)  # F x C x 3: d(direct)/ds
+        v = to_image / np.linalg.norm(to_image, axis=-1, keepdims=True) / (c * sigma)
+        jac = np.zeros((count * (pairs + self.channels), self.clock_params + 3 * count))
+        rows_t = np.arange(count)[:, None] * pairs + np.arange(pairs)[None, :]  # F x P
+        for sign, node in ((1.0, self.first), (-1.0, self.second)):  # r = tdoa - (d_i - o_i) + (d_j - o_j)
+            for p, k in enumerate(node):
+                if k == 0:
+                    continue
+                jac[rows_t[:, p], k - 1] += sign / sigma
+                if self.config.fit_drift:
+                    jac[rows_t[:, p], n + k - 1] += sign * 1e-6 * self.m.times[frames] / sigma
+        rows_r = count * pairs + np.arange(count)[:, None] * self.channels + np.arange(self.channels)[None, :]
+        for f in range(count):
+            columns = slice(self.clock_params + 3 * f, self.clock_params + 3 * f + 3)
+            jac[rows_t[f], columns] = -(u[f, self.first] - u[f, self.second])
+            jac[rows_r[f], columns] = -(v[f] - u[f])
+        return jac
+
     def sparsity(self, count: int):
         from scipy.sparse import lil_matrix
 
@@ -400,8 +433,11 @@ def _fit(mics: np.ndarray, m: FrameMeasurements, frames: np.ndarray, positions: 
     fit = model.solve(frames, np.concatenate([np.zeros(model.clock_params), positions.ravel()]))
     theta = fit.x
     n = mics.shape[0] - 1
-    jack = _jackknife(model, frames, theta, config.jackknife_blocks)
-    std = np.full(model.clock_params, np.nan) if jack is None else jack
+    if config.uncertainty == "sandwich":
+        spread = _sandwich(model, frames, theta, fit.fun, config.cluster_seconds)
+    else:
+        spread = _jackknife(model, frames, theta, config.jackknife_blocks)
+    std = np.full(model.clock_params, np.nan) if spread is None else spread
     residual = fit.fun * config.sigma
     rms = float(1.4826 * np.median(np.abs(residual - np.median(residual))))
     drifts = np.concatenate([[0.0], theta[n:2 * n]]) if config.fit_drift else np.zeros(n + 1)
@@ -422,3 +458,33 @@ def _jackknife(model: _Model, frames: np.ndarray, theta: np.ndarray, blocks: int
         estimates.append(model.solve(frames[keep], start).x[:k])
     estimates = np.array(estimates)
     return np.sqrt((blocks - 1) / blocks * ((estimates - estimates.mean(axis=0)) ** 2).sum(axis=0))
+
+
+def _sandwich(model: _Model, frames: np.ndarray, theta: np.ndarray, residuals: np.ndarray,
+              cluster_seconds: float) -> np.ndarray | None:
+    """Cluster-robust sandwich standard errors of the clock parameters of the soft-L1 fit at ``theta``.
+
+    With ``H = J^T W J`` (``W`` the robust loss's weights) and each cluster's score ``g_b = J_b^T W_b r_b``,
+    ``cov = H^-1 (sum_b g_b g_b^T) H^-1 b / (b - 1)``: the first-order effect of leaving out each cluster of frames
+    (``cluster_seconds`` long), which a refit from the solution would only approach in its iteration limit.
+    """
+    times = model.m.times[frames]
+    cluster = np.floor((times - times.min()) / cluster_seconds).astype(np.int64)
+    clusters = np.unique(cluster)
+    if clusters.size < 2:
+        return None
+    jac = model.jacobian(theta, frames)
+    z = (residuals / model.config.loss_scale) ** 2
+    weights = 1.0 / np.sqrt(1.0 + z)  # soft-L1: rho'(z)
+    hessian = jac.T @ (weights[:, None] * jac)
+    scores = jac * (weights * residuals)[:, None]
+    pairs, channels = len(model.first), model.channels
+    row_frame = np.concatenate([np.repeat(np.arange(frames.size), pairs), np.repeat(np.arange(frames.size), channels)])
+    per_cluster = np.zeros((clusters.size, jac.shape[1]))
+    np.add.at(per_cluster, np.searchsorted(clusters, cluster[row_frame]), scores)
+    try:
+        bread = np.linalg.solve(hessian, per_cluster.T)[:model.clock_params]  # k x clusters
+    except np.linalg.LinAlgError:
+        return None
+    meat = bread @ bread.T * clusters.size / (clusters.size - 1)
+    return np.sqrt(np.clip(np.diag(meat), 0.0, None))

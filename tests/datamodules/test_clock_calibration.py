@@ -183,3 +183,55 @@ def test_info_shows_the_estimated_offsets_of_separate_clocks_when_asked(shared_r
     assert len(lines) == 1 and lines[0].startswith("late.mcap: clock offsets (ms, node 0 = 0): +0.000 +- 0.000, ")
     node2 = float(lines[0].split("): ")[1].split(", ")[2].split(" +- ")[0])
     assert abs(node2 - 0.8) < 1e3 * TOLERANCE
+
+
+def _synthetic(rng: np.random.Generator, offsets: np.ndarray, noise: float, frames: int = 60):
+    """Measurements of a drone on a circle over the rig, offsets on the nodes, Gaussian noise of ``noise`` s."""
+    from datamodules.features.clock_calibration import FrameMeasurements, _ground_images
+    from datamodules.features.phase import SPEED_OF_SOUND, mic_pairs
+
+    mics = np.array([[0.0, 0.0, 0.2], [3.0, 0.0, 0.7], [3.0, 3.0, 1.2], [0.0, 3.0, 1.7]])
+    angle = np.linspace(0, 2 * np.pi, frames, endpoint=False)
+    source = np.stack([1.5 + 6 * np.cos(angle), 8 + 6 * np.sin(angle), 6 + 2 * np.sin(2 * angle)], axis=1)
+    direct = np.linalg.norm(source[:, None] - mics[None], axis=-1) / SPEED_OF_SOUND
+    image = np.linalg.norm(source[:, None] - _ground_images(mics, 0.0)[None], axis=-1) / SPEED_OF_SOUND
+    apparent = direct - offsets[None]
+    pairs = mic_pairs(4)
+    tdoa = np.stack([apparent[:, i] - apparent[:, j] for i, j in pairs], axis=1)
+    measured = FrameMeasurements(np.arange(frames) * 0.17, image - direct + rng.normal(0, noise, (frames, 4)),
+                                 tdoa + rng.normal(0, noise, tdoa.shape), np.full(frames, 10.0))
+    return mics, measured, source
+
+
+def test_the_jacobian_is_that_of_the_residuals():
+    from datamodules.features.clock_calibration import _Model
+
+    mics, measured, source = _synthetic(np.random.default_rng(0), np.array([0.0, 3e-4, -2e-4, 1e-4]), 5e-6, 8)
+    for drift in (False, True):
+        model = _Model(mics, measured, dataclasses.replace(CONFIG, fit_drift=drift))
+        frames = np.arange(8)
+        theta = np.concatenate([np.full(model.clock_params, 1e-4), (source + 0.3).ravel()])
+        jac = model.jacobian(theta, frames)
+        step = np.where(np.arange(theta.size) < model.clock_params, 1e-7, 1e-4)
+        numeric = np.stack([(model.residuals(theta + np.eye(theta.size)[k] * step[k], frames)
+                             - model.residuals(theta - np.eye(theta.size)[k] * step[k], frames)) / (2 * step[k])
+                            for k in range(theta.size)], axis=1)
+        assert np.allclose(jac, numeric, rtol=1e-4, atol=1e-3 * np.abs(numeric).max())
+
+
+def test_the_sandwich_std_matches_the_spread_of_repeated_fits():
+    from datamodules.features.clock_calibration import _Model, _sandwich
+
+    offsets, noise = np.array([0.0, 3e-4, -2e-4, 1e-4]), 5e-6
+    config = dataclasses.replace(CONFIG, fit_drift=False)
+    estimates, stds = [], []
+    for seed in range(25):
+        mics, measured, source = _synthetic(np.random.default_rng(seed), offsets, noise)
+        model = _Model(mics, measured, config)
+        frames = np.arange(source.shape[0])
+        fit = model.solve(frames, np.concatenate([np.zeros(3), source.ravel()]))
+        estimates.append(fit.x[:3])
+        stds.append(_sandwich(model, frames, fit.x, fit.fun, cluster_seconds=0.5))
+    spread, predicted = np.std(estimates, axis=0), np.sqrt(np.mean(np.square(stds), axis=0))
+    assert np.all(predicted > 0.6 * spread) and np.all(predicted < 1.6 * spread)
+    assert np.abs(np.mean(estimates, axis=0) - offsets[1:]).max() < 3 * spread.max()

@@ -27,14 +27,16 @@ the recipe's highest frequency is refused; an aperture too small for the region 
 Nodes on separate clocks (a source that says ``nodes_share_clock: false``): with ``clock_seconds`` > 0
 the front end (:class:`CalibratingPhase`) keeps the stream's first ``clock_seconds`` of audio, estimates
 the nodes' clock offsets and drifts from it (:func:`~datamodules.features.clock_calibration.estimate_clock_offsets`)
-when they have arrived, and corrects the cross-spectra of every later frame; rows before that, and all
-rows when the estimate fails (a warning says why), use the uncorrected time differences.
+when they have arrived, in a thread while the rows go on, and corrects the cross-spectra of every frame after
+the estimate is done; rows before that, and all rows when the estimate fails (a warning says why), use the
+uncorrected time differences.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import threading
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -405,37 +407,78 @@ class PhaseMcapWriter(McapTrackWriter):
 
 class CalibratingPhase(IncrementalPhase):
     """:class:`~datamodules.features.IncrementalPhase` that estimates the nodes' clocks from the stream's first
-    ``seconds`` and corrects every later frame by them (see the module docstring)."""
+    ``seconds`` and corrects every later frame by them (see the module docstring).
 
-    def __init__(self, recipe: PhaseRecipe, sample_rate: float, mics: np.ndarray, seconds: float, name: str):
+    With ``background`` (the default) the estimate runs in a thread while the stream goes on: the rows keep
+    coming, uncorrected, and the correction starts with the first block after the estimate is done. Without
+    it the block that completes the ``seconds`` waits for the estimate (seconds of CPU), and so do the rows
+    behind it; a replay is then the same whatever the machine's speed. ``estimate_seconds`` and
+    ``estimate_cpu_seconds`` say what the estimate took (wall and its thread's CPU), ``calibrated_at`` from
+    which stream second frames are corrected.
+    """
+
+    def __init__(self, recipe: PhaseRecipe, sample_rate: float, mics: np.ndarray, seconds: float, name: str,
+                 background: bool = True):
         super().__init__(recipe, sample_rate, mics.shape[0])
-        self.mics, self.name = mics, name
+        self.mics, self.name, self.background = mics, name, background
         self.needed = max(1, int(round(seconds * self.sample_rate)))
         self._kept: list[np.ndarray] | None = []
+        self._thread: threading.Thread | None = None
+        self._result: ClockCalibration | ClockCalibrationError | None = None
         self.calibration: ClockCalibration | None = None
         self.calibrated_at: float | None = None  #: stream seconds from which frames are corrected
+        self.estimate_seconds: float | None = None  #: wall seconds of the estimate
+        self.estimate_cpu_seconds: float | None = None  #: CPU seconds of the thread that made it
 
     def push(self, block: np.ndarray) -> None:
         super().push(block)
+        if self._thread is not None and not self._thread.is_alive():
+            self._thread = None
+            self._apply()
         if self._kept is None:
             return
         self._kept.append(np.array(block, dtype=np.float32))
         if self.end >= self.needed:
-            self._calibrate(np.concatenate(self._kept, axis=1)[:, :self.needed])
+            samples = np.concatenate(self._kept, axis=1)[:, :self.needed]
+            self._kept = None
+            if self.background:
+                self._thread = threading.Thread(target=self._estimate, args=(samples,), daemon=True,
+                                                name=f"clock calibration of {self.name}")
+                self._thread.start()
+            else:
+                self._estimate(samples)
+                self._apply()
 
-    def _calibrate(self, samples: np.ndarray) -> None:
+    def wait(self, timeout: float | None = None) -> bool:
+        """Wait for a running estimate (at most ``timeout`` s); whether none is left running. Its correction
+        starts with the next block."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+        return self._thread is None or not self._thread.is_alive()
+
+    def _estimate(self, samples: np.ndarray) -> None:
+        import time
+
         from datamodules.recording import ArrayAudio
 
-        self._kept = None
+        wall, cpu = time.perf_counter(), time.thread_time()
         try:
-            clocks = estimate_clock_offsets(ArrayAudio(samples, self.sample_rate, 0.0, self.mics))
+            self._result = estimate_clock_offsets(ArrayAudio(samples, self.sample_rate, 0.0, self.mics))
         except ClockCalibrationError as error:
-            log.warning("%s: %s; the live positions keep the nodes' clock offsets (uncorrected)", self.name, error)
+            self._result = error
+        self.estimate_seconds, self.estimate_cpu_seconds = time.perf_counter() - wall, time.thread_time() - cpu
+
+    def _apply(self) -> None:
+        result, self._result = self._result, None
+        if isinstance(result, ClockCalibrationError):
+            log.warning("%s: %s; the live positions keep the nodes' clock offsets (uncorrected)", self.name, result)
             return
-        self.set_clocks(clocks)
-        self.calibration, self.calibrated_at = clocks, self.end / self.sample_rate
-        log.warning("%s: from %.1f s of the stream on, phase features corrected by the %s", self.name,
-                    self.calibrated_at, clocks.summary())
+        if result is None:
+            return
+        self.set_clocks(result)
+        self.calibration, self.calibrated_at = result, self.end / self.sample_rate
+        log.warning("%s: from %.1f s of the stream on, phase features corrected by the %s (estimated in %.1f s)",
+                    self.name, self.calibrated_at, result.summary(), self.estimate_seconds)
 
 
 # ============================================================================================ tracker
