@@ -317,7 +317,6 @@ def test_track_cli_with_a_config_and_a_positions_file(quiet_recording, tmp_path,
         assert main(["track", "--config", str(config), "--audio", str(wav), "--mic-positions", str(mics),
                      "--separate-clocks", "--clock-seconds", "2"]) == 0
     assert "nodes on separate clocks: their offsets are estimated from the first 2 s" in caplog.text
-    assert "clock offsets" in caplog.text.split("estimated from the first 2 s", 1)[1]  # then estimated or refused
     capsys.readouterr()
     miscounted = "3 microphone position(s) for 4 audio channel(s)"
     for args, message in (([], "pass --mic-positions FILE"), (["--mic-positions", str(wrong)], miscounted)):
