@@ -86,7 +86,7 @@ class _PacedSource(RecordingSource):
 
 
 def track(path: Path, clock_seconds: float, background: bool = False, paced: bool = False,
-          config: Path = SRP_PHAT_CONFIG) -> LiveRun:
+          config: Path = SRP_PHAT_CONFIG, follow: bool = True) -> LiveRun:
     """Track ``path`` live (see the module docstring)."""
     from zoo.deploy.live_phase import CalibratingPhase, PhaseTracker, load_phase_model
 
@@ -94,7 +94,7 @@ def track(path: Path, clock_seconds: float, background: bool = False, paced: boo
     model = load_phase_model(config=config, source=source)
     keep = _Rows()
     tracker = PhaseTracker(model, source, [keep], preset=model.live_smoother.get("preset", "robust"),
-                           clock_seconds=clock_seconds)
+                           clock_seconds=clock_seconds, clock_follow=follow)
     if isinstance(tracker.front, CalibratingPhase):
         tracker.front.background = background
     report = tracker.run()
@@ -124,15 +124,28 @@ def errors(run: LiveRun, truth_times: np.ndarray, truth: np.ndarray) -> tuple[np
     return inside, np.linalg.norm(run.raw - gt, axis=1), np.linalg.norm(run.smooth - gt, axis=1)
 
 
-def offset_rows(front: Any, offsets: np.ndarray, drifts: np.ndarray, start: float, duration: float
-                ) -> list[dict[str, Any]]:
-    """Per node (1 ..): the live estimate's error against the truth at ``start`` s of the stream and its largest
-    absolute error from there to ``duration``, with the std (ms)."""
-    estimate = front.calibration
+def corrected_offsets(front: Any, times: np.ndarray) -> np.ndarray:
+    """The offsets (times x nodes) ``front`` corrected the frames by at each of ``times`` (stream seconds from
+    its first correction on): each correction of its ``history`` from the second it started."""
+    starts = np.array([start for start, _ in front.history])
+    index = np.clip(np.searchsorted(starts, times, side="right") - 1, 0, None)
+    return np.stack([front.history[i][1].offsets_at(t) for i, t in zip(index, times, strict=True)])
+
+
+def offset_rows(front: Any, offsets: np.ndarray, drifts: np.ndarray, start: float, duration: float,
+                once: Any = None) -> list[dict[str, Any]]:
+    """Per node (1 ..): the first estimate's error against the truth at ``start`` s of the stream and its std,
+    the largest absolute error of the corrections in effect from there to ``duration`` (ms), and the same
+    for ``once`` (a run that estimated only from the first stretch) when given."""
+    first = front.history[0][1]
     grid = np.linspace(start, duration, 61)
-    error = estimate.offsets_at(grid) - (offsets + drifts * 1e-6 * grid[:, None])
+    truth = offsets + drifts * 1e-6 * grid[:, None]
+    error = corrected_offsets(front, grid) - truth
+    once_error = corrected_offsets(once, grid) - truth if once is not None and once.history else None
     return [{"node": n, "error_ms": 1e3 * error[0, n], "max_error_ms": 1e3 * np.abs(error[:, n]).max(),
-             "std_ms": 1e3 * estimate.offsets_std_s[n], "drift_error_ppm": estimate.drifts_ppm[n] - drifts[n]}
+             "max_error_once_ms": 1e3 * np.abs(once_error[:, n]).max() if once_error is not None else np.nan,
+             "std_ms": 1e3 * first.offsets_std_s[n], "drift_error_ppm": front.calibration.drifts_ppm[n] - drifts[n],
+             "estimates": len(front.estimates)}
             for n in range(1, offsets.size)]
 
 
@@ -145,7 +158,7 @@ def flight(name: str, shared: Path, clocks: Path, seconds: list[float]) -> tuple
     runs = {"shared": track(shared, 0.0), "uncalibrated": track(clocks, 0.0)}
     e_rows, o_rows = [], []
     for s in seconds:
-        live = track(clocks, s)
+        live, once = track(clocks, s), track(clocks, s, follow=False)
         front = live.front
         row: dict[str, Any] = {**base, "clock_seconds": s, "estimate_cpu_s": front.estimate_cpu_seconds,
                                "estimate_wall_s": front.estimate_seconds}
@@ -159,11 +172,12 @@ def flight(name: str, shared: Path, clocks: Path, seconds: list[float]) -> tuple
             e_rows.append(row)
             log.warning("%s %s S=%g: calibration refused", name, clocks.stem, s)
             continue
-        row["status"] = "ok"
+        row["status"], row["once_calibrated"] = "ok", once.front.calibration is not None
         o_rows += [{**base, "clock_seconds": s, **r}
-                   for r in offset_rows(front, offsets, drifts, front.calibrated_at, recording.audio.duration)]
+                   for r in offset_rows(front, offsets, drifts, front.calibrated_at, recording.audio.duration,
+                                        once.front)]
         after = live.times - t0 >= front.calibrated_at
-        for column, other in (("calibrated", live), *runs.items()):
+        for column, other in (("calibrated", live), ("once", once), *runs.items()):
             if not np.array_equal(other.times, live.times):
                 raise RuntimeError(f"{clocks.stem}: the runs' rows are at different times")
             inside, raw, smooth = errors(other, gt.timestamps, gt.xyz)
@@ -212,9 +226,9 @@ def markdown(frame: pd.DataFrame, columns: dict[str, str]) -> str:
 def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
     """Pooled per condition and ``S``: flights calibrated, E (raw) on the rows after it on each clock setting
     (over the calibrated flights), offset errors and their std, estimate CPU and the queued stall."""
-    lines = ["| condition | S | calibrated | E shared / uncalibrated / calibrated (raw, m) | smoothed (m) | "
-             "raw, from S + 10 s (m) | "
-             "offset error at S: median / max (ms) | largest after S: max (ms) | within 1 / 2 std | "
+    lines = ["| condition | S | calibrated: once / followed | E shared / uncalibrated / once / followed (raw, m) | "
+             "smoothed (m) | raw, from S + 10 s (m) | "
+             "offset error at S: median / max (ms) | largest after S: once / followed (ms) | within 1 / 2 std | "
              "estimate CPU (s) | worst queued latency (s) |", "|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
     for (condition, s), group in e_frame.groupby(["condition", "clock_seconds"], sort=False):
         ok = group[group.status == "ok"]
@@ -227,14 +241,18 @@ def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
         if len(nodes):
             z = (nodes.error_ms / nodes.std_ms).abs()
             offsets = (f"{nodes.error_ms.abs().median():.3f} / {nodes.error_ms.abs().max():.3f} | "
-                       f"{nodes.max_error_ms.max():.3f} | {(z <= 1).mean():.0%} / {(z <= 2).mean():.0%}")
+                       f"{nodes.max_error_once_ms.max():.3f} / {nodes.max_error_ms.max():.3f} | "
+                       f"{(z <= 1).mean():.0%} / {(z <= 2).mean():.0%}")
         else:
             offsets = "- | - | -"
-        lines.append(f"| {condition} | {s:g} | {len(ok)} of {len(group)} | {pooled('E_raw_shared'):.2f} / "
-                     f"{pooled('E_raw_uncalibrated'):.2f} / {pooled('E_raw_calibrated'):.2f} | "
+        once = int(ok.once_calibrated.sum()) if len(ok) else 0
+        lines.append(f"| {condition} | {s:g} | {once} / {len(ok)} of {len(group)} | {pooled('E_raw_shared'):.2f} / "
+                     f"{pooled('E_raw_uncalibrated'):.2f} / {pooled('E_raw_once'):.2f} / "
+                     f"{pooled('E_raw_calibrated'):.2f} | "
                      f"{pooled('E_smooth_shared'):.2f} / {pooled('E_smooth_uncalibrated'):.2f} / "
-                     f"{pooled('E_smooth_calibrated'):.2f} | {pooled('E_settled_shared'):.2f} / "
-                     f"{pooled('E_settled_uncalibrated'):.2f} / {pooled('E_settled_calibrated'):.2f} | {offsets} | "
+                     f"{pooled('E_smooth_once'):.2f} / {pooled('E_smooth_calibrated'):.2f} | "
+                     f"{pooled('E_settled_shared'):.2f} / {pooled('E_settled_uncalibrated'):.2f} / "
+                     f"{pooled('E_settled_once'):.2f} / {pooled('E_settled_calibrated'):.2f} | {offsets} | "
                      f"{group.estimate_cpu_s.median():.1f} ({group.estimate_cpu_s.min():.1f}-"
                      f"{group.estimate_cpu_s.max():.1f}) | {group.worst_queued_s.max():.1f} |")
     return "\n".join(lines)
@@ -267,14 +285,16 @@ def main(argv: list[str] | None = None) -> None:
     if len(e_frame):
         print(summary(e_frame, o_frame), "", sep="\n")
         print(markdown(e_frame, {"condition": "", "recording": "", "drone": "", "clock_seconds": "g", "status": "",
-                             "E_raw_shared": ".2f", "E_raw_uncalibrated": ".2f", "E_raw_calibrated": ".2f",
+                             "E_raw_shared": ".2f", "E_raw_uncalibrated": ".2f", "E_raw_once": ".2f",
+                             "E_raw_calibrated": ".2f",
                              "E_smooth_shared": ".2f", "E_smooth_calibrated": ".2f", "E_settled_shared": ".2f",
                              "E_settled_calibrated": ".2f", "estimate_cpu_s": ".1f",
                              "compute_median_ms": ".1f", "update_at_s_ms": ".0f", "worst_queued_s": ".1f",
                              "stalled_s": ".1f"}), "", sep="\n")
     if len(o_frame):
         print(markdown(o_frame, {"condition": "", "recording": "", "clock_seconds": "g", "node": "d",
-                                 "error_ms": "+.3f", "std_ms": ".3f", "max_error_ms": ".3f",
+                                 "error_ms": "+.3f", "std_ms": ".3f", "max_error_once_ms": ".3f",
+                                 "max_error_ms": ".3f", "estimates": "d",
                                  "drift_error_ppm": "+.1f"}), "", sep="\n")
     if args.paced:
         name, _, clocks = args.condition[0]

@@ -488,3 +488,54 @@ def _sandwich(model: _Model, frames: np.ndarray, theta: np.ndarray, residuals: n
         return None
     meat = bread @ bread.T * clusters.size / (clusters.size - 1)
     return np.sqrt(np.clip(np.diag(meat), 0.0, None))
+
+
+# ------------------------------------------------------------------------------ following the clocks
+
+
+def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]], drift_significance: float = 3.0
+                            ) -> ClockCalibration:
+    """One clock model from estimates of successive stretches of a stream (how a live stream follows drift).
+
+    Each piece is ``(start, duration, estimate)``: the stretch's first sample and length (s of the stream) and
+    the estimate from that stretch alone (its times count from the stretch's first sample). Per node, the
+    offset each estimate gives at its stretch's centre is one measurement, weighted by its inverse variance;
+    a straight line through them (offset and drift, by weighted least squares) is kept when the drift of one
+    node is told from zero (``drift_significance`` standard errors, the estimator's own rule), else their
+    weighted mean. Standard errors come from the fit, scaled up by the scatter of the measurements about it
+    when that is larger than their stds say (Birge ratio). The result's times count from the stream's start.
+    """
+    if not pieces:
+        raise ValueError("combine_clock_estimates needs at least one estimate")
+    if len(pieces) == 1:
+        start, _, only = pieces[0]
+        return dataclasses.replace(only, offsets_s=only.offsets_at(-start), times=only.times + start)
+    centres = np.array([start + duration / 2 for start, duration, _ in pieces])
+    offsets = np.stack([estimate.offsets_at(duration / 2) for _, duration, estimate in pieces])  # K x nodes
+    stds = np.stack([estimate.offsets_std_s for _, _, estimate in pieces])
+    known = np.isfinite(stds) & (stds > 0)
+    stds = np.where(known, stds, np.median(stds[known]) if known.any() else 1e-5)
+    weights = 1.0 / stds ** 2
+
+    def fit(design: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per node: parameters (nodes x p) and their standard errors for offsets = design @ parameters."""
+        params, errors = np.zeros((offsets.shape[1], design.shape[1])), np.zeros((offsets.shape[1], design.shape[1]))
+        for node in range(1, offsets.shape[1]):
+            w = weights[:, node]
+            normal = design.T @ (w[:, None] * design)
+            params[node] = np.linalg.solve(normal, design.T @ (w * offsets[:, node]))
+            dof = len(centres) - design.shape[1]
+            chi2 = float(w @ (offsets[:, node] - design @ params[node]) ** 2) / dof if dof > 0 else 1.0
+            errors[node] = np.sqrt(np.diag(np.linalg.inv(normal)) * max(1.0, chi2))
+        return params, errors
+
+    line, line_errors = fit(np.stack([np.ones_like(centres), centres], axis=1))
+    if np.any(np.abs(line[:, 1]) > drift_significance * line_errors[:, 1]):
+        params, errors = line, line_errors
+    else:
+        mean, mean_errors = fit(np.ones((len(centres), 1)))
+        params, errors = np.pad(mean, ((0, 0), (0, 1))), np.pad(mean_errors, ((0, 0), (0, 1)))
+    last = pieces[-1][2]
+    return ClockCalibration(offsets_s=params[:, 0], offsets_std_s=errors[:, 0], drifts_ppm=params[:, 1] * 1e6,
+                            drifts_std_ppm=errors[:, 1] * 1e6, frames=sum(e.frames for _, _, e in pieces),
+                            residual_rms_s=last.residual_rms_s)

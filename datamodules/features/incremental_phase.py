@@ -21,7 +21,8 @@ or infinite samples is left out of the mean (offline such audio is refused).
 
 Node clocks (:meth:`IncrementalPhase.set_clocks`): from then on every frame's cross-spectra are corrected
 to node 0's clock as :class:`~datamodules.features.PhaseWindows` does with ``clocks``; frames already
-computed are computed again, and the long-term mean is corrected by the offsets of the newest sample.
+computed are computed again, and the long-term mean is corrected by the offsets of the newest sample (a
+newer estimate replaces the clocks the same way, the mean moved by the change).
 """
 
 from __future__ import annotations
@@ -134,12 +135,15 @@ class IncrementalPhase:
 
     def set_clocks(self, clocks: NodeClocks) -> None:
         """Correct the cross-spectra to node 0's clock from now on (``clocks.offsets_at(t)``: each node's offset
-        ``t`` seconds after the stream's first sample)."""
-        self.clocks = clocks
+        ``t`` seconds after the stream's first sample). Called again (a newer estimate), it replaces the earlier
+        clocks: the long-term mean is moved by the difference of the two at the newest sample."""
+        previous, self.clocks = self.clocks, clocks
         self._store.clear()
         if self.mean is not None:
+            now = self.end / self.sample_rate
+            change = clocks.offsets_at(now) - (previous.offsets_at(now) if previous is not None else 0.0)
             with torch.no_grad():
-                self.mean = self._corrected(self.mean[:, None], clocks.offsets_at(self.end / self.sample_rate))[:, 0]
+                self.mean = self._corrected(self.mean[:, None], change)[:, 0]
 
     def _fold(self, window_start: int) -> None:
         """Fold every whole grid frame that ends at or before ``window_start`` into the long-term mean."""

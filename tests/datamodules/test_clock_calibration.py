@@ -14,6 +14,7 @@ from datamodules.features.clock_calibration import (
     ClockCalibrationConfig,
     ClockCalibrationError,
     check_mode,
+    combine_clock_estimates,
     estimate_clock_offsets,
     wants_calibration,
 )
@@ -235,3 +236,36 @@ def test_the_sandwich_std_matches_the_spread_of_repeated_fits():
     spread, predicted = np.std(estimates, axis=0), np.sqrt(np.mean(np.square(stds), axis=0))
     assert np.all(predicted > 0.6 * spread) and np.all(predicted < 1.6 * spread)
     assert np.abs(np.mean(estimates, axis=0) - offsets[1:]).max() < 3 * spread.max()
+
+
+def _piece(start: float, duration: float, offset_at_centre: float, std: float, drift_ppm: float = 0.0):
+    """One stretch's estimate (two nodes) whose node-1 offset at the stretch's centre is ``offset_at_centre``."""
+    offset = offset_at_centre - drift_ppm * 1e-6 * duration / 2
+    return start, duration, ClockCalibration(np.array([0.0, offset]), np.array([0.0, std]), np.array([0.0, drift_ppm]),
+                                             np.zeros(2), frames=40, residual_rms_s=1e-5)
+
+
+def test_estimates_of_successive_stretches_give_the_drift_over_their_whole_span():
+    line = 1e-3 + 20e-6 * np.arange(5, 60, 10)  # 1 ms + 20 ppm, at the centres of six 10 s stretches
+    pieces = [_piece(10.0 * k, 10.0, value, 1e-5) for k, value in enumerate(line)]
+    combined = combine_clock_estimates(pieces)
+    assert combined.drifts_ppm[1] == pytest.approx(20.0, abs=1e-6) and combined.offsets_s[1] == pytest.approx(1e-3)
+    assert combined.offsets_at(30.0)[1] == pytest.approx(1e-3 + 20e-6 * 30.0)
+    # the std of the drift: 1e-5 s over a 50 s span of six points
+    assert 0.1 < combined.drifts_std_ppm[1] < 0.5 and combined.frames == 240
+    # measurements scattered more widely than their stds say: the standard errors grow with the scatter
+    noisy = [_piece(s, d, e.offsets_at(d / 2)[1] + (3e-5 if k % 2 else -3e-5), 1e-5)
+             for k, (s, d, e) in enumerate(pieces)]
+    assert combine_clock_estimates(noisy).drifts_std_ppm[1] > 2 * combined.drifts_std_ppm[1]
+
+
+def test_a_drift_not_told_from_zero_leaves_a_weighted_mean_and_one_estimate_is_shifted_to_the_stream():
+    pieces = [_piece(0.0, 10.0, 1.00e-3, 1e-5), _piece(10.0, 10.0, 1.01e-3, 2e-5), _piece(20.0, 10.0, 0.99e-3, 1e-5)]
+    combined = combine_clock_estimates(pieces)
+    assert combined.drifts_ppm[1] == 0.0
+    assert combined.offsets_s[1] == pytest.approx((1.00e-3 * 4 + 1.01e-3 + 0.99e-3 * 4) / 9)  # weights 1 / std^2
+    start, duration, only = _piece(20.0, 10.0, 1e-3, 1e-5, drift_ppm=5.0)
+    alone = combine_clock_estimates([(start, duration, only)])
+    assert alone.offsets_at(27.0)[1] == pytest.approx(only.offsets_at(7.0)[1])
+    with pytest.raises(ValueError):
+        combine_clock_estimates([])

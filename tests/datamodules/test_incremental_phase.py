@@ -97,3 +97,25 @@ def test_one_long_block_folds_the_whole_past():
     whole.push(audio)
     _stream(pieces, audio, [4800])
     np.testing.assert_allclose(whole.features().numpy(), pieces.features().numpy(), atol=1e-6)
+
+
+def test_a_newer_clock_estimate_replaces_the_earlier_one():
+    """Correcting by one estimate and then by another leaves the stream as the second alone would."""
+    from datamodules.features.clock_calibration import ClockCalibration
+
+    def clocks(offsets: list[float], drifts: list[float]) -> ClockCalibration:
+        return ClockCalibration(np.array(offsets), np.zeros(3), np.array(drifts), np.zeros(3), frames=1,
+                                residual_rms_s=0.0)
+
+    recipe = PhaseRecipe("short", frames=5, suppress_static=True, static_seconds=SHORT.static_seconds)
+    audio = _audio(3, 1.6, seed=5)
+    twice, once = IncrementalPhase(recipe, RATE, 3), IncrementalPhase(recipe, RATE, 3)
+    for front in (twice, once):
+        _stream(front, audio[:, :48000], [4800])
+    twice.set_clocks(clocks([0.0, 3e-4, -2e-4], [0.0, 50.0, 0.0]))
+    twice.set_clocks(clocks([0.0, 1e-4, 2e-4], [0.0, 0.0, 20.0]))
+    once.set_clocks(clocks([0.0, 1e-4, 2e-4], [0.0, 0.0, 20.0]))
+    np.testing.assert_allclose(twice.mean.numpy(), once.mean.numpy(), atol=1e-6)
+    for front in (twice, once):
+        _stream(front, audio[:, 48000:], [4800])
+    np.testing.assert_allclose(twice.features().numpy(), once.features().numpy(), atol=1e-5)

@@ -126,7 +126,7 @@ def run_track(args: argparse.Namespace) -> int:
             writers.append(mcap_writer)
         tracker = PhaseTracker if phase else Tracker
         preset = args.preset if phase or args.preset else "robust"  # a phase model falls back to its config's
-        extra = {"clock_seconds": args.clock_seconds} if phase else {}
+        extra = {"clock_seconds": args.clock_seconds, "clock_follow": not args.clock_once} if phase else {}
         report = tracker(model, audio, writers, lag=args.lag, preset=preset, batch=args.batch, **extra).run()
         if mcap_writer is not None:
             mcap_writer.finish()
@@ -160,10 +160,13 @@ def add_command(sub: argparse._SubParsersAction) -> None:
     track.add_argument("--preset", choices=["robust", "srp_phat"],
                        help="online smoother preset (default: a phase config's live_smoother, else robust)")
     track.add_argument("--realtime", action="store_true", help="recordings: deliver blocks at real-time pace")
-    track.add_argument("--clock-seconds", type=float, default=30.0,
+    track.add_argument("--clock-seconds", type=float, default=30.0, metavar="S",
                        help="phase models, recordings whose audio nodes do not share a clock: seconds of the "
-                            "stream's start from which their offsets are estimated, then corrected (default 30; "
-                            "0: not corrected)")
+                            "stream's start from which their offsets are estimated, then corrected, and again "
+                            "from every further S s, drift followed (default 30; 0: not corrected)")
+    track.add_argument("--clock-once", action="store_true",
+                       help="phase models, nodes on separate clocks: estimate the clocks from the first "
+                            "--clock-seconds only, not again as the stream goes on")
     track.add_argument("--separate-clocks", action="store_true",
                        help="phase models: the channels come from audio nodes on separate clocks (e.g. one WAV per "
                             "node joined, or PCM from several devices): calibrate them as --clock-seconds says")

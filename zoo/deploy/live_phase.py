@@ -25,18 +25,17 @@ the recipe's highest frequency is refused; an aperture too small for the region 
 (:func:`check_geometry`).
 
 Nodes on separate clocks (a source that says ``nodes_share_clock: false``): with ``clock_seconds`` > 0
-the front end (:class:`CalibratingPhase`) keeps the stream's first ``clock_seconds`` of audio, estimates
-the nodes' clock offsets and drifts from it (:func:`~datamodules.features.clock_calibration.estimate_clock_offsets`)
-when they have arrived, in a thread while the rows go on, and corrects the cross-spectra of every frame after
-the estimate is done; rows before that, and all rows when the estimate fails (a warning says why), use the
-uncorrected time differences.
+the front end is :class:`~zoo.deploy.live_clocks.CalibratingPhase`: the nodes' clocks are estimated from the
+stream's first ``clock_seconds`` of audio, in a thread while the rows go on, then again from every further
+``clock_seconds`` (``clock_follow``), and the cross-spectra of every frame after an estimate are corrected
+by all of them so far; rows before the first, and all rows while every estimate fails (a log line says
+why), use the uncorrected time differences.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-import threading
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,9 +48,9 @@ from torch import nn
 
 from datamodules.errors import ConfigError
 from datamodules.features import SPEED_OF_SOUND, IncrementalPhase, PhaseRecipe
-from datamodules.features.clock_calibration import ClockCalibration, ClockCalibrationError, estimate_clock_offsets
 from datamodules.formats.node_audio import warn_unshared_clocks
 from datamodules.streams import AudioSource
+from zoo.deploy.live_clocks import CalibratingPhase
 from zoo.deploy.tracking import (
     HOP_SECONDS,
     McapTrackWriter,
@@ -402,85 +401,6 @@ class PhaseMcapWriter(McapTrackWriter):
         self.stream.flush()
 
 
-# ============================================================================================ front end
-
-
-class CalibratingPhase(IncrementalPhase):
-    """:class:`~datamodules.features.IncrementalPhase` that estimates the nodes' clocks from the stream's first
-    ``seconds`` and corrects every later frame by them (see the module docstring).
-
-    With ``background`` (the default) the estimate runs in a thread while the stream goes on: the rows keep
-    coming, uncorrected, and the correction starts with the first block after the estimate is done. Without
-    it the block that completes the ``seconds`` waits for the estimate (seconds of CPU), and so do the rows
-    behind it; a replay is then the same whatever the machine's speed. ``estimate_seconds`` and
-    ``estimate_cpu_seconds`` say what the estimate took (wall and its thread's CPU), ``calibrated_at`` from
-    which stream second frames are corrected.
-    """
-
-    def __init__(self, recipe: PhaseRecipe, sample_rate: float, mics: np.ndarray, seconds: float, name: str,
-                 background: bool = True):
-        super().__init__(recipe, sample_rate, mics.shape[0])
-        self.mics, self.name, self.background = mics, name, background
-        self.needed = max(1, int(round(seconds * self.sample_rate)))
-        self._kept: list[np.ndarray] | None = []
-        self._thread: threading.Thread | None = None
-        self._result: ClockCalibration | ClockCalibrationError | None = None
-        self.calibration: ClockCalibration | None = None
-        self.calibrated_at: float | None = None  #: stream seconds from which frames are corrected
-        self.estimate_seconds: float | None = None  #: wall seconds of the estimate
-        self.estimate_cpu_seconds: float | None = None  #: CPU seconds of the thread that made it
-
-    def push(self, block: np.ndarray) -> None:
-        super().push(block)
-        if self._thread is not None and not self._thread.is_alive():
-            self._thread = None
-            self._apply()
-        if self._kept is None:
-            return
-        self._kept.append(np.array(block, dtype=np.float32))
-        if self.end >= self.needed:
-            samples = np.concatenate(self._kept, axis=1)[:, :self.needed]
-            self._kept = None
-            if self.background:
-                self._thread = threading.Thread(target=self._estimate, args=(samples,), daemon=True,
-                                                name=f"clock calibration of {self.name}")
-                self._thread.start()
-            else:
-                self._estimate(samples)
-                self._apply()
-
-    def wait(self, timeout: float | None = None) -> bool:
-        """Wait for a running estimate (at most ``timeout`` s); whether none is left running. Its correction
-        starts with the next block."""
-        if self._thread is not None:
-            self._thread.join(timeout)
-        return self._thread is None or not self._thread.is_alive()
-
-    def _estimate(self, samples: np.ndarray) -> None:
-        import time
-
-        from datamodules.recording import ArrayAudio
-
-        wall, cpu = time.perf_counter(), time.thread_time()
-        try:
-            self._result = estimate_clock_offsets(ArrayAudio(samples, self.sample_rate, 0.0, self.mics))
-        except ClockCalibrationError as error:
-            self._result = error
-        self.estimate_seconds, self.estimate_cpu_seconds = time.perf_counter() - wall, time.thread_time() - cpu
-
-    def _apply(self) -> None:
-        result, self._result = self._result, None
-        if isinstance(result, ClockCalibrationError):
-            log.warning("%s: %s; the live positions keep the nodes' clock offsets (uncorrected)", self.name, result)
-            return
-        if result is None:
-            return
-        self.set_clocks(result)
-        self.calibration, self.calibrated_at = result, self.end / self.sample_rate
-        log.warning("%s: from %.1f s of the stream on, phase features corrected by the %s (estimated in %.1f s)",
-                    self.name, self.calibrated_at, result.summary(), self.estimate_seconds)
-
-
 # ============================================================================================ tracker
 
 
@@ -493,15 +413,18 @@ class PhaseTracker(Tracker):
         preset: the online smoother's preset (default: the model's ``live_smoother`` preset, else ``robust``).
         clock_seconds: for a source whose nodes do not share a clock, seconds of its start that calibrate
             them (0: none, the rows carry the clocks' error).
+        clock_follow: estimate the clocks again from every further ``clock_seconds`` of the stream and
+            correct by all the estimates (drift followed); False: the first estimate serves the whole stream.
     """
 
     frame_kind = "GCC-PHAT"
 
     def __init__(self, model: PhaseTrackingModel, source: AudioSource, writers: list[Any], lag: float = 0.0,
                  preset: str | None = None, hop_seconds: float = HOP_SECONDS, batch: int = 1,
-                 clock_seconds: float = CLOCK_SECONDS):
+                 clock_seconds: float = CLOCK_SECONDS, clock_follow: bool = True):
         self.mics = check_geometry(model, source)
         self.clock_seconds = float(clock_seconds) if not source.nodes_share_clock else 0.0
+        self.clock_follow = clock_follow
         if not source.nodes_share_clock and self.clock_seconds > 0:
             log.warning("%s: audio nodes on separate clocks: their offsets are estimated from the first %g s of "
                         "the stream; rows before that use uncorrected time differences", source.name,
@@ -520,7 +443,7 @@ class PhaseTracker(Tracker):
     def front_end(self) -> IncrementalPhase:
         if self.clock_seconds > 0:
             return CalibratingPhase(self.model.recipe, self.source.sample_rate, self.mics,  # type: ignore[arg-type]
-                                    self.clock_seconds, self.source.name)
+                                    self.clock_seconds, self.source.name, follow=self.clock_follow)
         return IncrementalPhase(self.model.recipe, self.source.sample_rate, self.source.channels)  # type: ignore[arg-type]
 
     def localise(self, features: torch.Tensor, times: list[float]) -> list[PhaseRow]:

@@ -1,0 +1,59 @@
+"""Live clock calibration follows drifting clocks: estimates from successive stretches, combined."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+import pytest
+
+from datamodules.features import phase_recipe
+from datamodules.simulate.acoustics import AudioConfig
+from datamodules.simulate.ambient import AmbientConfig
+from datamodules.simulate.clocks import resample_at_clock
+from datamodules.simulate.simulator import SimulationConfig, simulate_recording
+from datamodules.simulate.trajectory import TrajectoryConfig
+from zoo.deploy.live_clocks import CalibratingPhase
+
+OFFSETS = np.array([0.0, 0.3e-3, 0.8e-3, 0.0])  #: per node (s)
+DRIFTS = np.array([0.0, 40.0, 0.0, 0.0])  #: per node (ppm): node 1 is 0.48 ms further off after 12 s
+BLOCK = 4800
+
+
+@pytest.fixture(scope="module")
+def drifting():
+    """12 s of a loud drone flying in quiet air, recorded by nodes whose clocks are offset and one drifts."""
+    quiet = AmbientConfig(level_dba=(45.0, 45.0), wind_speed=(0.0, 0.0), hvac=False)
+    flying = TrajectoryConfig(hover_probability=0.0, cruise_speed_median=3.0, cruise_speed_sigma=0.1)
+    config = SimulationConfig(duration=12.0, drone="m300", camera=False, lidar_sensors=(), trajectory=flying,
+                              audio=dataclasses.replace(AudioConfig(), ambient=quiet))
+    audio = simulate_recording(config, seed=6).audio
+    samples = resample_at_clock(audio.read(0, audio.num_samples), audio.sample_rate, OFFSETS, DRIFTS)
+    return samples, audio.sample_rate, audio.mic_positions
+
+
+def _run(samples: np.ndarray, rate: float, mics: np.ndarray, follow: bool) -> CalibratingPhase:
+    front = CalibratingPhase(phase_recipe("gcc_phat_2s_static"), rate, mics, 4.0, "drifting", background=False,
+                             follow=follow)
+    for stop in range(BLOCK, samples.shape[1] + 1, BLOCK):
+        front.push(samples[:, stop - BLOCK:stop])
+    return front
+
+
+def test_estimates_from_every_stretch_follow_a_drifting_clock(drifting, caplog):
+    samples, rate, mics = drifting
+    with caplog.at_level(logging.INFO, logger="zoo.deploy.live_clocks"):
+        followed = _run(samples, rate, mics, follow=True)
+    once = _run(samples, rate, mics, follow=False)
+    assert len(once.estimates) == 1 and len(once.history) == 1 and once.calibrated_at == pytest.approx(4.0)
+    assert len(followed.estimates) == 3 and [s for s, _, _ in followed.estimates] == [0.0, 4.0, 8.0]
+    assert [round(t, 1) for t, _ in followed.history] == [4.0, 8.0, 12.0]
+    assert "3 estimates" in caplog.text
+    truth = OFFSETS + DRIFTS * 1e-6 * 11.0  # near the end of the stream
+    followed_error = np.abs(followed.calibration.offsets_at(11.0) - truth).max()
+    once_error = np.abs(once.calibration.offsets_at(11.0) - truth).max()
+    assert followed_error < 5e-5 < once_error
+    assert followed.calibration.drifts_ppm[1] == pytest.approx(40.0, abs=8.0)
+    # the frames after the last estimate are corrected by the combined clocks
+    assert followed.clocks is followed.calibration
