@@ -33,11 +33,11 @@ def drifting():
     return samples, audio.sample_rate, audio.mic_positions
 
 
-def _run(samples: np.ndarray, rate: float, mics: np.ndarray, follow: bool) -> CalibratingPhase:
+def _run(samples: np.ndarray, rate: float, mics: np.ndarray, follow: bool, block: int = BLOCK) -> CalibratingPhase:
     front = CalibratingPhase(phase_recipe("gcc_phat_2s_static"), rate, mics, 4.0, "drifting", background=False,
                              follow=follow)
-    for stop in range(BLOCK, samples.shape[1] + 1, BLOCK):
-        front.push(samples[:, stop - BLOCK:stop])
+    for stop in range(block, samples.shape[1] + 1, block):
+        front.push(samples[:, stop - block:stop])
     return front
 
 
@@ -57,3 +57,7 @@ def test_estimates_from_every_stretch_follow_a_drifting_clock(drifting, caplog):
     assert followed.calibration.drifts_ppm[1] == pytest.approx(40.0, abs=8.0)
     # the frames after the last estimate are corrected by the combined clocks
     assert followed.clocks is followed.calibration
+    # one block holding every stretch: each is estimated, the same as from 0.1 s blocks
+    whole = _run(samples, rate, mics, follow=True, block=samples.shape[1])
+    assert len(whole.estimates) == 3
+    np.testing.assert_array_equal(whole.calibration.offsets_s, followed.calibration.offsets_s)

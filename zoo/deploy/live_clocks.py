@@ -72,15 +72,17 @@ class CalibratingPhase(IncrementalPhase):
         if self._kept is None:
             return
         self._kept.append(np.array(block, dtype=np.float32))
-        if self.end - self._stretch_start < self.needed:
-            return
-        kept = np.concatenate(self._kept, axis=1)
-        stretch, start = kept[:, :self.needed], self._stretch_start
-        self._kept = [kept[:, self.needed:]] if self.follow else None
-        self._stretch_start += self.needed
+        while self._kept is not None and self.end - self._stretch_start >= self.needed:  # a stretch is complete
+            kept = np.concatenate(self._kept, axis=1)
+            stretch, start = kept[:, :self.needed], self._stretch_start
+            self._kept = [kept[:, self.needed:]] if self.follow else None
+            self._stretch_start += self.needed
+            self._start_estimate(stretch, start)
+
+    def _start_estimate(self, stretch: np.ndarray, start: int) -> None:
         if self._thread is not None:  # the previous estimate is still running: this stretch is skipped
-            log.info("%s: clock estimate of %.1f s still running; the stretch from %.1f s is skipped", self.name,
-                     self.estimate_seconds or 0.0, start / self.sample_rate)
+            log.info("%s: a clock estimate is still running; the stretch %.1f-%.1f s is skipped", self.name,
+                     start / self.sample_rate, (start + self.needed) / self.sample_rate)
         elif self.background:
             self._thread = threading.Thread(target=self._estimate, args=(stretch, start), daemon=True,
                                             name=f"clock calibration of {self.name}")
