@@ -271,7 +271,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, help="write PREFIX_live_E.csv, PREFIX_live_offsets.csv (and _paced)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    logging.getLogger("zoo.deploy.live_phase").setLevel(logging.ERROR)  # the per-run notices; the tables say it
+    for notices in ("zoo.deploy.live_phase", "zoo.deploy.live_clocks"):  # the per-run notices; the tables say it
+        logging.getLogger(notices).setLevel(logging.ERROR)
     logging.getLogger("datamodules.formats.node_audio").setLevel(logging.ERROR)
     torch.set_num_threads(1)
     begin = time.perf_counter()
