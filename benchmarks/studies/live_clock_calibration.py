@@ -236,7 +236,9 @@ def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
         w = ok.rows.to_numpy(dtype=float) if len(ok) else np.zeros(0)
 
         def pooled(column: str, ok: pd.DataFrame = ok, w: np.ndarray = w) -> float:
-            return float(np.average(ok[column], weights=w)) if w.sum() > 0 else float("nan")
+            values = ok[column].to_numpy(dtype=float)
+            keep = (w > 0) & np.isfinite(values)  # a flight calibrated at its very end has no rows after it
+            return float(np.average(values[keep], weights=w[keep])) if keep.any() else float("nan")
 
         if len(nodes):
             z = (nodes.error_ms / nodes.std_ms).abs()
