@@ -493,18 +493,19 @@ def _sandwich(model: _Model, frames: np.ndarray, theta: np.ndarray, residuals: n
 # ------------------------------------------------------------------------------ following the clocks
 
 
-def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]], drift_significance: float = 3.0,
-                            min_drift_estimates: int = 3) -> ClockCalibration:
+def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]], drift_significance: float = 3.0
+                            ) -> ClockCalibration:
     """One clock model from estimates of successive stretches of a stream (how a live stream follows drift).
 
     Each piece is ``(start, duration, estimate)``: the stretch's first sample and length (s of the stream) and
     the estimate from that stretch alone (its times count from the stretch's first sample). Per node, the
     offset each estimate gives at its stretch's centre is one measurement, weighted by its inverse variance;
     a straight line through them (offset and drift, by weighted least squares) is kept when the drift of one
-    node is told from zero (``drift_significance`` standard errors, the estimator's own rule) and the line
-    has ``min_drift_estimates`` of them (with three, the scatter about the line can check their stds), else
-    their weighted mean. Standard errors come from the fit, scaled up by the scatter of the measurements about it
-    when that is larger than their stds say (Birge ratio). The result's times count from the stream's start.
+    node is told from zero (``drift_significance`` standard errors, the estimator's own rule), else their
+    weighted mean. Two estimates suffice for a line (asking for three, so that their scatter could check
+    their stds, followed the clocks worse on development flights). Standard errors come from the fit, scaled
+    up by the scatter of the measurements about it when that is larger than their stds say (Birge ratio).
+    The result's times count from the stream's start.
     """
     if not pieces:
         raise ValueError("combine_clock_estimates needs at least one estimate")
@@ -531,7 +532,7 @@ def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]],
         return params, errors
 
     line, line_errors = fit(np.stack([np.ones_like(centres), centres], axis=1))
-    if len(pieces) >= min_drift_estimates and np.any(np.abs(line[:, 1]) > drift_significance * line_errors[:, 1]):
+    if np.any(np.abs(line[:, 1]) > drift_significance * line_errors[:, 1]):
         params, errors = line, line_errors
     else:
         mean, mean_errors = fit(np.ones((len(centres), 1)))
