@@ -11,7 +11,9 @@ exactly at ``S`` whatever the machine's load. Per flight and ``S`` it reports th
 truth over the rest of the flight (node by node against node 0: at ``S`` and the largest after it) with the
 estimate's std, and the E (mean 3D error, m) of the raw localiser output and of the causal smoother on the rows
 after the correction began, on each clock setting over the same rows, and of the raw output from 10 s after it
-(``srp_phat`` holds a detection for up to 10 s, so the first seconds still show uncorrected ones).
+(``srp_phat`` holds a detection for up to 10 s, so the first seconds still show uncorrected ones), and the
+share of those rows in which ``srp_phat`` detected the drone (a clock error of a few hundredths of a millisecond
+already lowers its steered response; rows without a detection hold the last one or fall back).
 
 The cost: the estimate's CPU seconds (its thread's), and what a stream paced at real time would see around it.
 A replay gives each update's compute (block arrival to row); queueing those updates behind blocks that arrive
@@ -52,7 +54,8 @@ SETTLE = 10.0  #: seconds after the correction starts from which E is also given
 
 @dataclass
 class LiveRun:
-    """One live run: rows (time, raw xyz, smoothed xyz), each update's latency (s), the calibration if any."""
+    """One live run: rows (time, raw xyz, smoothed xyz), each update's latency (s), the calibration if any, and
+    which rows ``srp_phat`` detected the drone in (the others hold its last detection or fall back)."""
 
     times: np.ndarray
     raw: np.ndarray
@@ -60,6 +63,7 @@ class LiveRun:
     latencies: np.ndarray
     lateness: np.ndarray = field(default_factory=lambda: np.zeros(0))  #: paced: each block's delivery after its due
     front: Any = None
+    detected: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
 
 class _Rows:
@@ -103,7 +107,8 @@ def track(path: Path, clock_seconds: float, background: bool = False, paced: boo
         raise RuntimeError(f"{path}: {len(rows)} rows but {len(report.latencies)} updates (a skipped window?)")
     lateness = np.asarray(getattr(source, "lateness", []), dtype=np.float64)
     return LiveRun(np.array([r.timestamp for r in rows]), np.array([r.raw for r in rows]),
-                   np.array([r.mean for r in rows]), np.asarray(report.latencies), lateness, tracker.front)
+                   np.array([r.mean for r in rows]), np.asarray(report.latencies), lateness, tracker.front,
+                   np.array([r.detected for r in rows], dtype=bool))
 
 
 def queued_latency(compute: np.ndarray, hop: float = HOP) -> np.ndarray:
@@ -182,9 +187,10 @@ def flight(name: str, shared: Path, clocks: Path, seconds: list[float]) -> tuple
                 raise RuntimeError(f"{clocks.stem}: the runs' rows are at different times")
             inside, raw, smooth = errors(other, gt.timestamps, gt.xyz)
             keep = inside & after
-            row[f"E_raw_{column}"], row[f"E_smooth_{column}"] = float(raw[keep].mean()), float(smooth[keep].mean())
             settled = keep & (live.times - t0 >= front.calibrated_at + SETTLE)
-            row[f"E_settled_{column}"] = float(raw[settled].mean()) if settled.any() else float("nan")
+            for key, values, rows in (("E_raw", raw, keep), ("E_smooth", smooth, keep), ("E_settled", raw, settled),
+                                      ("detected", other.detected, keep)):  # none after a correction at the end
+                row[f"{key}_{column}"] = float(values[rows].mean()) if rows.any() else float("nan")
         row["rows"] = int((after & errors(live, gt.timestamps, gt.xyz)[0]).sum())
         e_rows.append(row)
         log.warning("%s %s S=%g: E raw shared %.2f / uncalibrated %.2f / calibrated %.2f m; estimate %.1f s CPU",
@@ -225,11 +231,12 @@ def markdown(frame: pd.DataFrame, columns: dict[str, str]) -> str:
 
 def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
     """Pooled per condition and ``S``: flights calibrated, E (raw) on the rows after it on each clock setting
-    (over the calibrated flights), offset errors and their std, estimate CPU and the queued stall."""
+    (over the calibrated flights) and the share of those rows ``srp_phat`` detected the drone in, offset errors and
+    their std, estimate CPU and the queued stall."""
     lines = ["| condition | S | calibrated: once / followed | E shared / uncalibrated / once / followed (raw, m) | "
-             "smoothed (m) | raw, from S + 10 s (m) | "
+             "smoothed (m) | raw, from S + 10 s (m) | rows detected: shared / once / followed | "
              "offset error at S: median / max (ms) | largest after S: once / followed (ms) | within 1 / 2 std | "
-             "estimate CPU (s) | worst queued latency (s) |", "|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
+             "estimate CPU (s) | worst queued latency (s) |", "|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
     for (condition, s), group in e_frame.groupby(["condition", "clock_seconds"], sort=False):
         ok = group[group.status == "ok"]
         nodes = o_frame[(o_frame.condition == condition) & (o_frame.clock_seconds == s)] if len(o_frame) else o_frame
@@ -254,7 +261,9 @@ def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
                      f"{pooled('E_smooth_shared'):.2f} / {pooled('E_smooth_uncalibrated'):.2f} / "
                      f"{pooled('E_smooth_once'):.2f} / {pooled('E_smooth_calibrated'):.2f} | "
                      f"{pooled('E_settled_shared'):.2f} / {pooled('E_settled_uncalibrated'):.2f} / "
-                     f"{pooled('E_settled_once'):.2f} / {pooled('E_settled_calibrated'):.2f} | {offsets} | "
+                     f"{pooled('E_settled_once'):.2f} / {pooled('E_settled_calibrated'):.2f} | "
+                     f"{pooled('detected_shared'):.0%} / {pooled('detected_once'):.0%} / "
+                     f"{pooled('detected_calibrated'):.0%} | {offsets} | "
                      f"{group.estimate_cpu_s.median():.1f} ({group.estimate_cpu_s.min():.1f}-"
                      f"{group.estimate_cpu_s.max():.1f}) | {group.worst_queued_s.max():.1f} |")
     return "\n".join(lines)
@@ -291,7 +300,8 @@ def main(argv: list[str] | None = None) -> None:
                              "E_raw_shared": ".2f", "E_raw_uncalibrated": ".2f", "E_raw_once": ".2f",
                              "E_raw_calibrated": ".2f",
                              "E_smooth_shared": ".2f", "E_smooth_calibrated": ".2f", "E_settled_shared": ".2f",
-                             "E_settled_calibrated": ".2f", "estimate_cpu_s": ".1f",
+                             "E_settled_calibrated": ".2f", "detected_once": ".2f", "detected_calibrated": ".2f",
+                             "estimate_cpu_s": ".1f",
                              "compute_median_ms": ".1f", "update_at_s_ms": ".0f", "worst_queued_s": ".1f",
                              "stalled_s": ".1f"}), "", sep="\n")
     if len(o_frame):
