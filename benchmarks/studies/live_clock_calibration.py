@@ -6,7 +6,7 @@ clocks (as for :mod:`benchmarks.studies.clock_calibration`; the truth, ``clocks_
 only). Every flight is tracked live with ``srp_phat`` (``configs/model/srp_phat.yaml``, batch 1, in stream
 order, as ``aaute track`` does): on the shared clock, on separate clocks without calibration, and on separate
 clocks calibrated from the first ``S`` seconds of the stream for each ``--clock-seconds S``. These runs wait for
-the estimate (:class:`~zoo.deploy.live_phase.CalibratingPhase` without ``background``), so the correction starts
+the estimate (:class:`~zoo.deploy.live_clocks.CalibratingPhase` without ``background``), so the correction starts
 exactly at ``S`` whatever the machine's load. Per flight and ``S`` it reports the offsets' error against the
 truth over the rest of the flight (node by node against node 0: at ``S`` and the largest after it) with the
 estimate's std, and the E (mean 3D error, m) of the raw localiser output and of the causal smoother on the rows
@@ -15,12 +15,12 @@ after the correction began, on each clock setting over the same rows, and of the
 share of those rows in which ``srp_phat`` detected the drone (a clock error of a few hundredths of a millisecond
 already lowers its steered response; rows without a detection hold the last one or fall back).
 
-The cost: the estimate's CPU seconds (its thread's), and what a stream paced at real time would see around it.
+The cost: the estimate's CPU seconds, and what a stream paced at real time would see around it.
 A replay gives each update's compute (block arrival to row); queueing those updates behind blocks that arrive
 every 0.1 s gives the latency of each row from its block's arrival when the estimate holds up the stream.
 ``--paced`` also runs the calibrated flights of the first condition paced at real time with the estimate in the
-background (the default of ``aaute track``), and reports the latency from each block's due time to its row and
-how many seconds of stream pass before the correction starts.
+background (a worker process, the default of ``aaute track``), and reports the latency from each block's due
+time to its row and how many seconds of stream pass before the correction starts.
 
 Run: ``python -m benchmarks.studies.live_clock_calibration --condition default SHARED_DIR CLOCKS_DIR
 [--condition quiet SHARED_DIR CLOCKS_DIR] [--clock-seconds 10 30] [--paced] [--out PREFIX]``. One torch thread.

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import logging
+import multiprocessing
 from pathlib import Path
 
 import numpy as np
@@ -218,7 +219,8 @@ def test_nodes_on_separate_clocks_are_calibrated_from_the_stream_start(tmp_path,
     corrected = PhaseWindows(audio, front.recipe, t_end, clocks=front.calibration)(0)
     raw = PhaseWindows(audio, front.recipe, t_end)(0)
     assert np.abs(features - corrected).max() < 0.1 * np.abs(features - raw).max()
-    # in the background (the default) the same estimate arrives later, and the blocks meanwhile are not held up
+    # in the background (the default: a worker process) the same estimate arrives later, and the blocks
+    # meanwhile are not held up
     background = CalibratingPhase(front.recipe, audio.sample_rate, audio.mic_positions, 8.0, "background")
     block = 4800
     for stop in range(block, 8 * 48000 + 1, block):
@@ -228,6 +230,11 @@ def test_nodes_on_separate_clocks_are_calibrated_from_the_stream_start(tmp_path,
     background.push(audio.read(8 * 48000, 8 * 48000 + block))
     assert background.calibrated_at == pytest.approx(8.1)
     assert np.array_equal(background.calibration.offsets_s, front.calibration.offsets_s)
+    background.close()  # the worker process ends; closing twice is harmless
+    background.close()
+    assert not multiprocessing.active_children()
+    tracker(8.0).run()  # the stream ends while the worker estimates: the run ends the worker
+    assert not multiprocessing.active_children()
     caplog.clear()
     with caplog.at_level(logging.WARNING):
         plain = tracker(0.0)

@@ -2,19 +2,26 @@
 ``aaute track`` for such a source.
 
 :class:`CalibratingPhase` keeps the stream's first ``seconds`` of audio, estimates the nodes' clock offsets
-and drifts from it (:func:`~datamodules.features.clock_calibration.estimate_clock_offsets`) in a thread while
-the rows go on, and corrects the cross-spectra of every frame after the estimate is done; then it estimates
-again from every further ``seconds`` and corrects by the line through all its estimates, so drifting clocks
-are followed. Rows before the first estimate, and all rows while every estimate is refused (a log line
-says why), use the uncorrected time differences.
+and drifts from it (:func:`~datamodules.features.clock_calibration.estimate_clock_offsets`) in a worker
+process while the rows go on, and corrects the cross-spectra of every frame after the estimate is done; then
+it estimates again from every further ``seconds`` and corrects by the line through all its estimates, so
+drifting clocks are followed. Rows before the first estimate, and all rows while every estimate is refused
+(a log line says why), use the uncorrected time differences.
+
+Why a process and not a thread: the estimate holds the interpreter lock for up to 1.4 s at a time (its
+robust fit), and a tracker thread beside it then waits that long for one update.
 """
 
 from __future__ import annotations
 
 import logging
-import threading
+import multiprocessing
+import signal
+import time
+from multiprocessing.pool import AsyncResult, Pool
 
 import numpy as np
+import torch
 
 from datamodules.features import IncrementalPhase, PhaseRecipe
 from datamodules.features.clock_calibration import (
@@ -25,6 +32,26 @@ from datamodules.features.clock_calibration import (
 )
 
 log = logging.getLogger(__name__)
+
+Estimate = tuple[ClockCalibration | ClockCalibrationError, float, float]  #: result, wall s, CPU s
+
+
+def estimate_stretch(samples: np.ndarray, sample_rate: float, mics: np.ndarray) -> Estimate:
+    """The clocks of one stretch of audio (channels x samples), or why not, with its wall and CPU seconds."""
+    from datamodules.recording import ArrayAudio
+
+    wall, cpu = time.perf_counter(), time.thread_time()
+    try:
+        result: ClockCalibration | ClockCalibrationError = estimate_clock_offsets(
+            ArrayAudio(samples, sample_rate, 0.0, mics))
+    except ClockCalibrationError as error:
+        result = error
+    return result, time.perf_counter() - wall, time.thread_time() - cpu
+
+
+def _start_worker() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the tracker's to handle
+    torch.set_num_threads(1)  # one core for the estimate, the others stay with the tracker
 
 
 class CalibratingPhase(IncrementalPhase):
@@ -38,12 +65,13 @@ class CalibratingPhase(IncrementalPhase):
     the stream uncorrected until a later stretch succeeds. Without it, one estimate from the first
     ``seconds`` serves the whole stream.
 
-    With ``background`` (the default) each estimate runs in a thread while the stream goes on: the rows keep
-    coming, uncorrected (or corrected by the earlier estimates), and the correction starts with the first
-    block after the estimate is done; a stretch that ends while an estimate is still running is skipped.
+    With ``background`` (the default) each estimate runs in a worker process (started with the stream, one
+    torch thread) while the stream goes on: the rows keep coming, uncorrected (or corrected by the earlier
+    estimates), and the correction starts with the first block after the estimate is done; a stretch that ends
+    while an estimate is still running is skipped. :meth:`close` ends the worker.
     Without it the block that completes a stretch waits for its estimate (seconds of CPU), and so do the rows
     behind it; a replay is then the same whatever the machine's speed. ``estimate_seconds`` and
-    ``estimate_cpu_seconds`` say what the first estimate took (wall and its thread's CPU), ``calibrated_at``
+    ``estimate_cpu_seconds`` say what the first estimate took (wall and CPU), ``calibrated_at``
     from which stream second frames are corrected, ``history`` each correction with the stream second it
     started.
     """
@@ -55,22 +83,24 @@ class CalibratingPhase(IncrementalPhase):
         self.needed = max(1, int(round(seconds * self.sample_rate)))
         self._kept: list[np.ndarray] | None = []
         self._stretch_start = 0  #: stream sample of the kept audio's first sample
-        self._thread: threading.Thread | None = None
-        self._result: tuple[int, ClockCalibration | ClockCalibrationError] | None = None
+        self._pool: Pool | None = None
+        self._running: tuple[int, AsyncResult] | None = None  #: the stretch's first sample, its estimate
         self.estimates: list[tuple[float, float, ClockCalibration]] = []  #: (start s, duration s, estimate)
         self.calibration: ClockCalibration | None = None
         self.calibrated_at: float | None = None  #: stream seconds from which frames are corrected
         self.history: list[tuple[float, ClockCalibration]] = []  #: each correction and its first stream second
         self.estimate_seconds: float | None = None  #: wall seconds of the first estimate
-        self.estimate_cpu_seconds: float | None = None  #: CPU seconds of the thread that made it
+        self.estimate_cpu_seconds: float | None = None  #: its CPU seconds
 
     def push(self, block: np.ndarray) -> None:
         super().push(block)
-        if self._thread is not None and not self._thread.is_alive():
-            self._thread = None
-            self._apply()
+        if self._running is not None and self._running[1].ready():
+            (start, job), self._running = self._running, None
+            self._apply(start, job.get())
         if self._kept is None:
             return
+        if self.background and self._pool is None:  # its imports overlap the first stretch
+            self._pool = multiprocessing.get_context("spawn").Pool(1, initializer=_start_worker)
         self._kept.append(np.array(block, dtype=np.float32))
         while self._kept is not None and self.end - self._stretch_start >= self.needed:  # a stretch is complete
             kept = np.concatenate(self._kept, axis=1)
@@ -80,43 +110,32 @@ class CalibratingPhase(IncrementalPhase):
             self._start_estimate(stretch, start)
 
     def _start_estimate(self, stretch: np.ndarray, start: int) -> None:
-        if self._thread is not None:  # the previous estimate is still running: this stretch is skipped
+        if self._running is not None:  # the previous estimate is still running: this stretch is skipped
             log.info("%s: a clock estimate is still running; the stretch %.1f-%.1f s is skipped", self.name,
                      start / self.sample_rate, (start + self.needed) / self.sample_rate)
-        elif self.background:
-            self._thread = threading.Thread(target=self._estimate, args=(stretch, start), daemon=True,
-                                            name=f"clock calibration of {self.name}")
-            self._thread.start()
+        elif self.background and self._pool is not None:
+            self._running = (start, self._pool.apply_async(estimate_stretch, (stretch, self.sample_rate, self.mics)))
         else:
-            self._estimate(stretch, start)
-            self._apply()
+            self._apply(start, estimate_stretch(stretch, self.sample_rate, self.mics))
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for a running estimate (at most ``timeout`` s); whether none is left running. Its correction
         starts with the next block."""
-        if self._thread is not None:
-            self._thread.join(timeout)
-        return self._thread is None or not self._thread.is_alive()
+        if self._running is not None:
+            self._running[1].wait(timeout)
+        return self._running is None or self._running[1].ready()
 
-    def _estimate(self, samples: np.ndarray, start: int) -> None:
-        import time
+    def close(self) -> None:
+        """End the worker process (an estimate still running is dropped: the stream has ended)."""
+        if self._pool is not None:
+            self._pool.terminate()
+            self._pool.join()
+            self._pool, self._running = None, None
 
-        from datamodules.recording import ArrayAudio
-
-        wall, cpu = time.perf_counter(), time.thread_time()
-        try:
-            result: ClockCalibration | ClockCalibrationError = estimate_clock_offsets(
-                ArrayAudio(samples, self.sample_rate, 0.0, self.mics))
-        except ClockCalibrationError as error:
-            result = error
+    def _apply(self, start: int, estimate: Estimate) -> None:
+        result, wall, cpu = estimate
         if self.estimate_seconds is None:
-            self.estimate_seconds, self.estimate_cpu_seconds = time.perf_counter() - wall, time.thread_time() - cpu
-        self._result = (start, result)
-
-    def _apply(self) -> None:
-        if self._result is None:
-            return
-        (start, result), self._result = self._result, None
+            self.estimate_seconds, self.estimate_cpu_seconds = wall, cpu
         seconds = start / self.sample_rate, self.needed / self.sample_rate
         if isinstance(result, ClockCalibrationError):
             if self.calibration is not None:

@@ -26,10 +26,10 @@ the recipe's highest frequency is refused; an aperture too small for the region 
 
 Nodes on separate clocks (a source that says ``nodes_share_clock: false``): with ``clock_seconds`` > 0
 the front end is :class:`~zoo.deploy.live_clocks.CalibratingPhase`: the nodes' clocks are estimated from the
-stream's first ``clock_seconds`` of audio, in a thread while the rows go on, then again from every further
-``clock_seconds`` (``clock_follow``), and the cross-spectra of every frame after an estimate are corrected
-by all of them so far; rows before the first, and all rows while every estimate fails (a log line says
-why), use the uncorrected time differences.
+stream's first ``clock_seconds`` of audio, in a worker process while the rows go on, then again from every
+further ``clock_seconds`` (``clock_follow``), and the cross-spectra of every frame after an estimate are
+corrected by all of them so far; rows before the first, and all rows while every estimate fails (a log line
+says why), use the uncorrected time differences.
 """
 
 from __future__ import annotations
@@ -439,6 +439,13 @@ class PhaseTracker(Tracker):
         self.gated = GatedSmoothing(self.smoother)
         self.mic_tensor = torch.from_numpy(self.mics.astype(np.float32))  # as the DataModule's batches carry them
         prepare_threshold(model.net, self.mic_tensor.double())  # as the net keys the batch's geometry
+
+    def run(self) -> TrackingReport:
+        try:
+            return super().run()
+        finally:
+            if isinstance(self.front, CalibratingPhase):
+                self.front.close()
 
     def front_end(self) -> IncrementalPhase:
         if self.clock_seconds > 0:
