@@ -6,7 +6,8 @@ and drifts from it (:func:`~datamodules.features.clock_calibration.estimate_cloc
 process while the rows go on, and corrects the cross-spectra of every frame after the estimate is done; then
 it estimates again from every further ``seconds`` and corrects by the line through all its estimates, so
 drifting clocks are followed. Rows before the first estimate, and all rows while every estimate is refused
-(a log line says why), use the uncorrected time differences.
+(a log line says why), use the uncorrected time differences (the tracker marks their rows ``uncorrected``:
+:meth:`CalibratingPhase.corrected`).
 
 Why a process and not a thread: the estimate holds the interpreter lock for up to 1.4 s at a time (its
 robust fit), and a tracker thread beside it then waits that long for one update.
@@ -88,6 +89,7 @@ class CalibratingPhase(IncrementalPhase):
         self.estimates: list[tuple[float, float, ClockCalibration]] = []  #: (start s, duration s, estimate)
         self.calibration: ClockCalibration | None = None
         self.calibrated_at: float | None = None  #: stream seconds from which frames are corrected
+        self.corrected_from: int | None = None  #: the same in stream samples: windows ending there on are corrected
         self.history: list[tuple[float, ClockCalibration]] = []  #: each correction and its first stream second
         self.estimate_seconds: float | None = None  #: wall seconds of the first estimate
         self.estimate_cpu_seconds: float | None = None  #: its CPU seconds
@@ -117,6 +119,11 @@ class CalibratingPhase(IncrementalPhase):
             self._running = (start, self._pool.apply_async(estimate_stretch, (stretch, self.sample_rate, self.mics)))
         else:
             self._apply(start, estimate_stretch(stretch, self.sample_rate, self.mics))
+
+    def corrected(self, stop: int) -> bool:
+        """Whether the window ending at stream sample ``stop`` was computed from corrected cross-spectra (its
+        features are computed when its last block arrives, after any estimate that block completes)."""
+        return self.corrected_from is not None and stop >= self.corrected_from
 
     def wait(self, timeout: float | None = None) -> bool:
         """Wait for a running estimate (at most ``timeout`` s); whether none is left running. Its correction
@@ -154,7 +161,7 @@ class CalibratingPhase(IncrementalPhase):
         self.calibration = combined
         self.history.append((now, combined))
         if self.calibrated_at is None:
-            self.calibrated_at = now
+            self.calibrated_at, self.corrected_from = now, self.end
             log.warning("%s: from %.1f s of the stream on, phase features corrected by the %s (estimated in %.1f s)",
                         self.name, now, combined.summary(), self.estimate_seconds)
         else:

@@ -13,11 +13,13 @@ Rows (:data:`PHASE_COLUMNS`): ``x, y, z, std_x, std_y, std_z`` the online robust
 std; ``raw_x, raw_y, raw_z`` the localiser's output (what ``aaute predict`` gives); ``detection_score``
 (peak response over the detection threshold) and ``detected``; ``state``: ``detected`` (a counted
 detection), ``held`` (the last detection, within ``hold_seconds``), ``fallback`` (after the hold, or
-before the first detection) or ``estimate`` (``phase_student``, which always answers). Only measurements
+before the first detection), ``estimate`` (``phase_student``, which always answers) or ``uncorrected``
+(nodes on separate clocks, before their first clock estimate: the localiser's output, never a detection,
+since a millisecond between nodes moves it by metres). Only measurements
 (``detected`` and ``estimate``) feed the smoother, each with its noise scaled by its score: a held row takes
 the smoother's interpolation when a measurement follows within the lag, else the latest smoothed position
-(its std grown with the time since); a fallback row carries the localiser's fallback position with std NaN
-(no measurement supports it).
+(its std grown with the time since); a fallback or uncorrected row carries the localiser's position with
+std NaN (no measurement supports it).
 
 Geometry is never guessed: the source's positions must be known (the recording's, or ``--mic-positions``);
 their count must equal the channels (:class:`PhaseTracker` refuses otherwise); a sample rate below twice
@@ -28,8 +30,9 @@ Nodes on separate clocks (a source that says ``nodes_share_clock: false``): with
 the front end is :class:`~zoo.deploy.live_clocks.CalibratingPhase`: the nodes' clocks are estimated from the
 stream's first ``clock_seconds`` of audio, in a worker process while the rows go on, then again from every
 further ``clock_seconds`` (``clock_follow``), and the cross-spectra of every frame after an estimate are
-corrected by all of them so far; rows before the first, and all rows while every estimate fails (a log line
-says why), use the uncorrected time differences.
+corrected by all of them so far. Rows before the first, and all rows while every estimate fails (a log line
+says why), come from the uncorrected time differences: they are ``uncorrected`` rows, kept out of the
+smoother, and ``srp_phat``'s gate starts afresh with the first corrected window.
 """
 
 from __future__ import annotations
@@ -453,11 +456,19 @@ class PhaseTracker(Tracker):
                                     self.clock_seconds, self.source.name, follow=self.clock_follow)
         return IncrementalPhase(self.model.recipe, self.source.sample_rate, self.source.channels)  # type: ignore[arg-type]
 
-    def localise(self, features: torch.Tensor, times: list[float]) -> list[PhaseRow]:
-        """The net on windows (B x pairs x frames x lags) ending at ``times``, in stream order: one row each."""
+    def localise(self, features: torch.Tensor, times: list[float], corrected: list[bool] | None = None
+                 ) -> list[PhaseRow]:
+        """The net on windows (B x pairs x frames x lags) ending at ``times``, in stream order: one row each.
+
+        ``corrected`` (default: all) says which windows' time differences are on one clock; the others become
+        ``uncorrected`` rows (never detections), and the gate's memory starts afresh with the first corrected
+        window (a separate sequence for it), so no detection from uncorrected time differences is held or
+        averaged after it."""
         b = features.shape[0]
+        corrected = [True] * b if corrected is None else corrected
         inputs = {"audio_phase": features, "mic_positions": self.mic_tensor.expand(b, -1, -1),
-                  "time": torch.tensor(times, dtype=torch.float64), "sequence": torch.zeros(b, dtype=torch.long)}
+                  "time": torch.tensor(times, dtype=torch.float64),
+                  "sequence": torch.tensor(corrected, dtype=torch.long)}
         with torch.inference_mode():
             out = self.model.net(inputs)
         positions = out["position"].double().numpy()
@@ -466,13 +477,20 @@ class PhaseTracker(Tracker):
             states = list(self.model.net.gate.states)
         else:
             scores, detected, states = np.full(b, np.nan), np.ones(b, dtype=bool), ["estimate"] * b
-        return [PhaseRow(t, positions[i], float(scores[i]), bool(detected[i]), states[i])
-                for i, t in enumerate(times)]
+        return [PhaseRow(t, positions[i], float(scores[i]), bool(detected[i]), states[i]) if corrected[i] else
+                PhaseRow(t, positions[i], float(scores[i]), False, "uncorrected") for i, t in enumerate(times)]
+
+    def _corrected(self, stop: int) -> bool:
+        """Whether the window ending at stream sample ``stop`` has its time differences on one clock: always for
+        a source on one clock or tracked uncalibrated (``clock_seconds`` 0), else once the first estimate
+        corrects them."""
+        return not isinstance(self.front, CalibratingPhase) or self.front.corrected(stop)
 
     def _positions(self, pending: list[tuple[int, torch.Tensor, float]], report: TrackingReport) -> None:
         if not pending:
             return
-        rows = self.localise(torch.stack([f for _, f, _ in pending]), [self._timestamp(s) for s, _, _ in pending])
+        rows = self.localise(torch.stack([f for _, f, _ in pending]), [self._timestamp(s) for s, _, _ in pending],
+                             [self._corrected(s) for s, _, _ in pending])
         report.updates += len(pending)
         for (stop, _, arrival), row in zip(pending, rows, strict=True):
             if not np.isfinite(row.raw).all():
