@@ -429,8 +429,10 @@ class MMAUDDataModule(L.LightningDataModule):
         class_id = DRONES[recording.drone].class_id if recording.drone in DRONES else -1
         keys = self._build_features(path, recording, times, image_index)
         mics = audio.mic_positions.astype(np.float32) if self.phase_recipe is not None else None
+        refused = isinstance(self.clock_estimates.get(str(path)), str)  # auto, and the audio could not tell them
         return SequenceSamples(path, recording.sequence_id, recording.drone, times, gt, gt_valid, pseudo,
-                               pseudo_valid, image_index, visible, class_id, keys, mic_positions=mics)
+                               pseudo_valid, image_index, visible, class_id, keys, mic_positions=mics,
+                               uncorrected_clocks=refused)
 
     def _clock_calibration(self, path: Path, recording: Recording) -> ClockCalibration | None:
         """The nodes' clock offsets estimated from the recording's audio (cached beside its features).

@@ -37,6 +37,8 @@ class SequenceSamples:
     recording_id: str = ""  #: the recording a piece comes from ('' : sequence_id)
     blocks: int = 1  #: contiguous time blocks of the recording in this piece
     mic_positions: np.ndarray | None = None  #: channels x 3 (m), given to models that read phase features
+    #: nodes on separate clocks whose calibration was refused: the phase features keep their clock offsets
+    uncorrected_clocks: bool = False
 
     def __post_init__(self) -> None:
         if self.rows is None:
@@ -102,6 +104,7 @@ class WindowDataset(Dataset):
             phase = np.array(self._array(seq.feature_keys["audio_phase"])[row], dtype=np.float32)
             item["audio_phase"] = torch.from_numpy(phase)
             item["mic_positions"] = torch.from_numpy(seq.mic_positions)
+            item["uncorrected_clocks"] = torch.as_tensor(seq.uncorrected_clocks)
         visible = float(seq.visible[i])
         dark = self.light == "dark" or (self.dark_probability > 0 and torch.rand(()).item() < self.dark_probability)
         if "image" in seq.feature_keys:

@@ -11,7 +11,8 @@ exactly at ``S`` whatever the machine's load. Per flight and ``S`` it reports th
 truth over the rest of the flight (node by node against node 0: at ``S`` and the largest after it) with the
 estimate's std, and the E (mean 3D error, m) of the raw localiser output and of the causal smoother on the rows
 after the correction began, on each clock setting over the same rows, and of the raw output from 10 s after it
-(``srp_phat`` holds a detection for up to 10 s, so the first seconds still show uncorrected ones), and the
+(``srp_phat`` holds a detection for up to 10 s: none from before the first correction, whose rows are
+``uncorrected``, but a later estimate's correction still shows detections made with the earlier ones), and the
 share of those rows in which ``srp_phat`` detected the drone (a clock error of a few hundredths of a millisecond
 already lowers its steered response; rows without a detection hold the last one or fall back).
 
@@ -49,7 +50,7 @@ log = logging.getLogger(__name__)
 
 HOP = 0.1  #: seconds between rows (``aaute track``'s block)
 STALLED = 0.5  #: a row this many seconds after its block's arrival counts as held up
-SETTLE = 10.0  #: seconds after the correction starts from which E is also given (``srp_phat`` holds a detection 10 s)
+SETTLE = 10.0  #: seconds after the first correction from which E is also given (``srp_phat``'s hold: 10 s)
 
 
 @dataclass

@@ -113,6 +113,17 @@ def test_srp_phat_breaks_with_wrong_microphone_positions_or_a_delayed_channel(ne
     assert np.linalg.norm(_locate(net, late) - source) > 1.0
 
 
+def test_srp_phat_never_detects_in_a_window_whose_node_clocks_are_uncorrected(net):
+    source = np.array([3.0, 5.0, 3.0])
+    features = phase_features(_render(source, distributed4(), RECIPE.span_seconds + 0.01), RATE, RECIPE)
+    with torch.no_grad():
+        out = net({"audio_phase": torch.stack([features, features]),
+                   "uncorrected_clocks": torch.tensor([False, True])})
+    assert out["detected"].tolist() == [True, False]
+    assert float(out["detection_score"][1]) == pytest.approx(float(out["detection_score"][0]))  # the peak is kept
+    np.testing.assert_allclose(out["position"][1].numpy(), net.region.mean(dim=1).numpy(), atol=1e-5)
+
+
 def test_srp_phat_has_no_parameters_and_gates_noise(net):
     assert list(net.parameters()) == [] and net.category == "non-learned"
     noise = np.random.default_rng(3).standard_normal((4, int(RECIPE.span_seconds * RATE) + 10))

@@ -29,7 +29,9 @@ frame of a window is detected, the last detected position of the same sequence i
 ``hold_seconds``, then the mean of the sequence's detections so far (``fallback: mean``) or the
 search region's centre (``fallback: centre``) is returned (the centre before the first detection).
 That memory follows the batches' ``sequence`` and ``time`` entries (windows in time order, as the
-test and predict loaders give them); without them every window stands alone.
+test and predict loaders give them); without them every window stands alone. A window whose batch entry
+``uncorrected_clocks`` is true (nodes on separate clocks whose calibration the audio refused: its time
+differences carry the clocks' offsets, milliseconds that move a peak by metres) is never a detection.
 
 Outputs: ``position`` (B x 3), ``detection_score`` (B: the window's highest frame response over the
 threshold; above 1 means detected) and ``detected`` (B, bool). ``fit`` trains nothing: the net has
@@ -72,7 +74,7 @@ class SRPPhat(TrajectoryNet):
     inputs = {"audio_phase": "gcc_phat"}
     category = "non-learned"
     trains_position = False
-    context_keys = ("mic_positions", "time", "sequence")
+    context_keys = ("mic_positions", "time", "sequence", "uncorrected_clocks")
 
     def __init__(
         self,
@@ -236,6 +238,9 @@ class SRPPhat(TrajectoryNet):
                 positions[rows] = self.window_positions(points, hit)
                 scores[rows] = peak.max(dim=1).values / threshold
                 detected[rows] = hit.any(dim=1)
+        uncorrected = inputs.get("uncorrected_clocks")
+        if uncorrected is not None:  # time differences off by the nodes' clock offsets: a peak there is no fix
+            detected &= ~uncorrected.to(torch.bool).cpu()
         positions, detected = self.hold_or_fallback(positions, detected, inputs.get("sequence"), inputs.get("time"))
         return {"position": positions.to(phase.dtype).to(phase.device),
                 "detection_score": scores.to(phase.dtype).to(phase.device), "detected": detected.to(phase.device)}
