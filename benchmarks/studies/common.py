@@ -61,7 +61,7 @@ def srp_phat_errors(module: MMAUDDataModule, template: torch.nn.Module | None = 
     stems = [Path(sequence.path).stem for sequence in module.sequences["test"]]
     errors: dict[str, list[np.ndarray]] = {}
     for batch in module.test_dataloader()[0]:
-        inputs = {name: batch[name] for name in ("audio_phase", "mic_positions", "time", "sequence")}
+        inputs = {name: batch[name] for name in ("audio_phase", *net.context_keys) if name in batch}  # as aaute test
         with torch.no_grad():
             position = net(inputs)["position"].numpy()
         valid = batch["gt_valid"].numpy()
