@@ -208,7 +208,7 @@ def test_nodes_on_separate_clocks_are_calibrated_from_the_stream_start(tmp_path,
         live.run()
     front = live.front
     assert isinstance(front, CalibratingPhase) and front.calibrated_at == pytest.approx(8.0, abs=0.1)
-    # rows from uncorrected time differences say so and are never detections; the gate starts afresh after them
+    # rows from uncorrected time differences say so and are never detections; none is held after them
     t0 = open_recording(path).audio.t0
     before = [r for r in written.rows if r.timestamp - t0 < front.calibrated_at - 1e-6]
     after = [r for r in written.rows if r.timestamp - t0 >= front.calibrated_at - 1e-6]

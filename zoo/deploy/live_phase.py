@@ -14,8 +14,8 @@ std; ``raw_x, raw_y, raw_z`` the localiser's output (what ``aaute predict`` give
 (peak response over the detection threshold) and ``detected``; ``state``: ``detected`` (a counted
 detection), ``held`` (the last detection, within ``hold_seconds``), ``fallback`` (after the hold, or
 before the first detection), ``estimate`` (``phase_student``, which always answers) or ``uncorrected``
-(nodes on separate clocks, before their first clock estimate: the localiser's output, never a detection,
-since a millisecond between nodes moves it by metres). Only measurements
+(nodes on separate clocks, before their first clock estimate: never a detection, since a millisecond
+between nodes moves a peak by metres; ``srp_phat`` falls back, the score keeps the peak). Only measurements
 (``detected`` and ``estimate``) feed the smoother, each with its noise scaled by its score: a held row takes
 the smoother's interpolation when a measurement follows within the lag, else the latest smoothed position
 (its std grown with the time since); a fallback or uncorrected row carries the localiser's position with
@@ -32,7 +32,7 @@ stream's first ``clock_seconds`` of audio, in a worker process while the rows go
 further ``clock_seconds`` (``clock_follow``), and the cross-spectra of every frame after an estimate are
 corrected by all of them so far. Rows before the first, and all rows while every estimate fails (a log line
 says why), come from the uncorrected time differences: they are ``uncorrected`` rows, kept out of the
-smoother, and ``srp_phat``'s gate starts afresh with the first corrected window.
+smoother, and ``srp_phat`` counts no detection in them (none is held after the correction).
 """
 
 from __future__ import annotations
@@ -461,14 +461,13 @@ class PhaseTracker(Tracker):
         """The net on windows (B x pairs x frames x lags) ending at ``times``, in stream order: one row each.
 
         ``corrected`` (default: all) says which windows' time differences are on one clock; the others become
-        ``uncorrected`` rows (never detections), and the gate's memory starts afresh with the first corrected
-        window (a separate sequence for it), so no detection from uncorrected time differences is held or
-        averaged after it."""
+        ``uncorrected`` rows: the net is told (``uncorrected_clocks``, as the DataModule tells it offline), so
+        ``srp_phat`` counts no detection there and its gate holds none of them after the correction."""
         b = features.shape[0]
         corrected = [True] * b if corrected is None else corrected
         inputs = {"audio_phase": features, "mic_positions": self.mic_tensor.expand(b, -1, -1),
-                  "time": torch.tensor(times, dtype=torch.float64),
-                  "sequence": torch.tensor(corrected, dtype=torch.long)}
+                  "time": torch.tensor(times, dtype=torch.float64), "sequence": torch.zeros(b, dtype=torch.long),
+                  "uncorrected_clocks": ~torch.tensor(corrected, dtype=torch.bool)}
         with torch.inference_mode():
             out = self.model.net(inputs)
         positions = out["position"].double().numpy()
