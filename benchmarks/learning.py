@@ -17,6 +17,7 @@ import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
@@ -72,12 +73,24 @@ def _model_clause(name: str, curve: pd.DataFrame, constant: float | None) -> str
     return f"{text}: below the constant at {', '.join(_windows(value) for value in below['windows'])} windows"
 
 
+def _dark_clause(curve: pd.DataFrame, dark: pd.DataFrame) -> str:
+    """A model's E in darkness at its largest data size against its ideal-light E there; '' for a model whose
+    E is the same in both (it reads no image)."""
+    both = curve.merge(dark, on=["flights", "windows"], suffixes=("", "_dark")).sort_values("windows")
+    if both.empty or np.allclose(both["E"], both["E_dark"]):
+        return ""
+    last = both.iloc[-1]
+    return (f", in darkness {last['E_dark']:.2f} m at {_windows(last['windows'])} windows "
+            f"({last['E_dark'] / last['E']:.2f} × its E in ideal light)")
+
+
 def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, str], light: str = "ideal") -> str:
     """A caption's sentence on the learning curves of ``methods`` (model -> name in the table), '' if none.
 
     ``frame``: the rows of a learning suite's ``results.csv`` (newest per job). Each model is stated by its E
     at the smallest and the largest data size, its best, and the sizes at which it is below the constant of the
-    same data, so a reader sees whether a row fails for lack of data or whatever the data.
+    same data, so a reader sees whether a row fails for lack of data or whatever the data; a model that reads
+    images also by its E in darkness (does it see the drone at all?).
     """
     rows = frame[frame["protocol"] == protocol]
     points = curve_points(rows, light)
@@ -93,7 +106,9 @@ def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, 
     references = [f"constant (mean train GT) {constant:.2f} m" if constant is not None else "no constant row"]
     if bound is not None:
         references.append(f"physical limit (CRLB, RMS) {bound:.2f} m")
+    dark = curve_points(rows, "dark") if light == "ideal" else points.iloc[:0]
     clauses = [_model_clause(name, points[points["model"] == model], constant)
+               + _dark_clause(points[points["model"] == model], dark[dark["model"] == model])
                for model, name in methods.items() if model in set(points["model"])]
     return (f"Learning curves (suite {suites}: {data}; protocol {protocol}; E under {light} light, "
             f"{'one seed' if seeds == 1 else f'mean over up to {seeds} seeds'} per size; its own "

@@ -66,6 +66,8 @@ def learning_rows() -> list[dict]:
     curve = {"student": (14.7, 13.5, 12.8), "audionet": (12.3, 11.0, 11.6), "phase_student": (10.2, 8.8, 7.8)}
     rows = [_model(model, flights, flights * 90, error) for model, errors in curve.items()
             for flights, error in zip((2, 5, 20), errors, strict=True)]
+    rows += [{**_model("visualnet", flights, flights * 20, error), "E_dark": error * 0.99}  # it never sees the drone
+             for flights, error in ((2, 18.2), (5, 12.0))]
     rows.append({**PROVENANCE, "kind": "constant", "job_id": "constant_gt-by_sequence-s0", "model": "constant",
                  "method": "Constant (mean train GT)", "category": "reference", "protocol": "by_sequence",
                  "seed": 0, "E_ideal": 11.5, "E_dark": 11.5})
@@ -90,6 +92,10 @@ def test_the_table_caption_states_the_learning_curves_of_its_models(tmp_path, ca
             "not below the constant at any size") in caption
     assert ("AudioNet 12.30 m at 180 windows to 11.60 m at 1800 (best 11.00 m at 450, 0.96 × the constant): below "
             "the constant at 450 windows;") in caption
+    assert ("VisualNet 18.20 m at 40 windows to 12.00 m at 100 (best 12.00 m at 100, 1.04 × the constant): not "
+            "below the constant at any size, in darkness 11.88 m at 100 windows (0.99 × its E in ideal light)"
+            ) in caption
+    assert "AudioNet" in caption and "in darkness" not in caption.split("AudioNet", 1)[1].split(";")[0]
     assert "phase_student" not in caption  # not a row of this table
     assert "Learning curves" not in second  # the learning suite's protocol is by_sequence alone
     plain = tmp_path / "plain"
