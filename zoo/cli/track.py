@@ -163,7 +163,8 @@ def add_command(sub: argparse._SubParsersAction) -> None:
     track.add_argument("--clock-seconds", type=float, default=30.0, metavar="S",
                        help="phase models, recordings whose audio nodes do not share a clock: seconds of the "
                             "stream's start from which their offsets are estimated, then corrected, and again "
-                            "from every further S s, drift followed (default 30; 0: not corrected)")
+                            "from every further S s, drift followed; rows before the first estimate are "
+                            "'uncorrected', never detections (default 30; 0: not corrected, rows as they come)")
     track.add_argument("--clock-once", action="store_true",
                        help="phase models, nodes on separate clocks: estimate the clocks from the first "
                             "--clock-seconds only, not again as the stream goes on")
