@@ -88,8 +88,7 @@ class CalibratingPhase(IncrementalPhase):
         self._running: tuple[int, AsyncResult] | None = None  #: the stretch's first sample, its estimate
         self.estimates: list[tuple[float, float, ClockCalibration]] = []  #: (start s, duration s, estimate)
         self.calibration: ClockCalibration | None = None
-        self.calibrated_at: float | None = None  #: stream seconds from which frames are corrected
-        self.corrected_from: int | None = None  #: the same in stream samples: windows ending there on are corrected
+        self.corrected_from: int | None = None  #: stream sample from which frames are corrected (first estimate)
         self.history: list[tuple[float, ClockCalibration]] = []  #: each correction and its first stream second
         self.estimate_seconds: float | None = None  #: wall seconds of the first estimate
         self.estimate_cpu_seconds: float | None = None  #: its CPU seconds
@@ -119,6 +118,11 @@ class CalibratingPhase(IncrementalPhase):
             self._running = (start, self._pool.apply_async(estimate_stretch, (stretch, self.sample_rate, self.mics)))
         else:
             self._apply(start, estimate_stretch(stretch, self.sample_rate, self.mics))
+
+    @property
+    def calibrated_at(self) -> float | None:
+        """Stream seconds from which frames are corrected (None before the first estimate)."""
+        return None if self.corrected_from is None else self.corrected_from / self.sample_rate
 
     def corrected(self, stop: int) -> bool:
         """Whether the window ending at stream sample ``stop`` was computed from corrected cross-spectra (its
@@ -160,8 +164,8 @@ class CalibratingPhase(IncrementalPhase):
         now = self.end / self.sample_rate
         self.calibration = combined
         self.history.append((now, combined))
-        if self.calibrated_at is None:
-            self.calibrated_at, self.corrected_from = now, self.end
+        if self.corrected_from is None:
+            self.corrected_from = self.end
             log.warning("%s: from %.1f s of the stream on, phase features corrected by the %s (estimated in %.1f s)",
                         self.name, now, combined.summary(), self.estimate_seconds)
         else:
