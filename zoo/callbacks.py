@@ -1,12 +1,13 @@
 """Writing a run's trajectories: Lightning prediction writers, added by the task for its output settings.
 
 :class:`PredictionCsvWriter` writes ``<predictions_dir>/<sequence id>_<light>.csv`` (``timestamp, x,
-y, z``, six decimals, written atomically) for every sequence of every loader at the end of a test
-or predict epoch; :class:`PredictionTopicWriter` stores the first loader's trajectories in each
-sequence's MCAP recording under a track topic at the end of a predict epoch. Both read what the task
-collected (:class:`PredictionSource`), per sequence and sorted by time, and name sequences and
-loaders by the task's :class:`~zoo.catalog.CatalogSnapshot`. Under DDP every process writes the
-sequences it collected (no rank is singled out).
+y, z``, six decimals, written atomically; a net that detects, SRP-PHAT, adds ``detection_score, detected,
+state`` as ``aaute track`` does) for every sequence of every loader at the end of a test or predict
+epoch; :class:`PredictionTopicWriter` stores the first loader's trajectories in each sequence's MCAP
+recording under a track topic at the end of a predict epoch. Both read what the task collected
+(:class:`PredictionSource`), per sequence and sorted by time, and name sequences and loaders by the
+task's :class:`~zoo.catalog.CatalogSnapshot`. Under DDP every process writes the sequences it collected
+(no rank is singled out).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from lightning.pytorch.callbacks import BasePredictionWriter
 
 from datamodules.atomic import atomic_write
 from zoo.catalog import CatalogSnapshot
+from zoo.nets.phase.gate import WINDOW_STATES
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +73,10 @@ class PredictionCsvWriter(BasePredictionWriter):
                 name = names[index] if index < len(names) else f"sequence{index}"
                 frame = pd.DataFrame({"timestamp": sequence["time"], "x": sequence["position"][:, 0],
                                       "y": sequence["position"][:, 1], "z": sequence["position"][:, 2]})
+                if "state" in sequence:  # a net that detects: the columns aaute track writes for it
+                    frame["detection_score"] = sequence["detection_score"]
+                    frame["detected"] = sequence["detected"].astype(int)
+                    frame["state"] = [WINDOW_STATES[i] for i in sequence["state"]]
                 with atomic_write(out / f"{name}_{light}.csv") as tmp:
                     frame.to_csv(tmp, index=False, float_format="%.6f")
         log.info("%s predictions written to %s", stage, out)

@@ -272,7 +272,7 @@ class TrajectoryTask(L.LightningModule):
 
     def test_step(self, batch: dict[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0) -> None:
         outputs = self._evaluate(batch, "test", dataloader_idx)
-        self._collect(dataloader_idx, batch, outputs["position"], outputs.get("detected"))
+        self._collect(dataloader_idx, batch, outputs)
 
     def on_test_epoch_start(self) -> None:
         self._predictions = {}
@@ -284,19 +284,22 @@ class TrajectoryTask(L.LightningModule):
             self._log_smoothed()
 
     def predict_step(self, batch: dict[str, torch.Tensor], batch_idx: int, dataloader_idx: int = 0) -> dict:
-        position = self.net(self._inputs(batch))["position"]
-        self._collect(dataloader_idx, batch, position)
-        return {"sequence": batch["sequence"], "time": batch["time"], "position": position}
+        outputs = self.net(self._inputs(batch))
+        self._collect(dataloader_idx, batch, outputs)
+        return {"sequence": batch["sequence"], "time": batch["time"], "position": outputs["position"]}
 
     def on_predict_epoch_start(self) -> None:
         self._predictions = {}
 
     # ------------------------------------------------------------------------------ predictions
 
-    def _collect(self, dataloader_idx: int, batch: dict[str, torch.Tensor], position: torch.Tensor,
-                 detected: torch.Tensor | None = None) -> None:
-        """Keep a batch's predictions; ``detected`` (B, bool) marks the windows a net measured (others held)."""
-        self._predictions.setdefault(dataloader_idx, []).append({
+    def _collect(self, dataloader_idx: int, batch: dict[str, torch.Tensor], outputs: dict[str, torch.Tensor]) -> None:
+        """Keep a batch's predictions. A net that detects (SRP-PHAT) also gives ``detected`` (B, bool: the
+        windows it measured; others held or fell back), ``detection_score`` and ``state``
+        (:data:`~zoo.nets.phase.gate.WINDOW_STATES` indices), kept for the prediction files."""
+        position = outputs["position"]
+        detected = outputs.get("detected")
+        collected = {
             "sequence": batch["sequence"].cpu().numpy(),
             "time": batch["time"].cpu().numpy(),
             "position": position.detach().cpu().double().numpy(),
@@ -304,7 +307,11 @@ class TrajectoryTask(L.LightningModule):
             "gt_valid": batch["gt_valid"].cpu().numpy(),
             "detected": (np.ones(len(position), dtype=bool) if detected is None
                          else detected.detach().cpu().numpy().astype(bool)),
-        })
+        }
+        for key in ("detection_score", "state"):
+            if key in outputs:
+                collected[key] = outputs[key].detach().cpu().numpy()
+        self._predictions.setdefault(dataloader_idx, []).append(collected)
 
     def collected_loaders(self) -> list[int]:
         """The indices of the loaders this process collected predictions of, in order."""

@@ -8,6 +8,7 @@ import multiprocessing
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 import yaml
@@ -15,6 +16,7 @@ import yaml
 from datamodules.features import PhaseWindows
 from datamodules.formats import open_recording
 from datamodules.streams import PcmSource, RecordingSource
+from zoo.callbacks import PredictionCsvWriter
 from zoo.deploy.live_phase import GatedSmoothing, PhaseRow, PhaseTracker, check_geometry, load_phase_model
 from zoo.deploy.tracking import TrackingError
 from zoo.smoothing import ROBUST_PRESETS, OnlineSmoother
@@ -94,6 +96,9 @@ def offline(quiet_recording, tmp_path_factory):
             out["state"] += task.net.gate.states  # the gate's verdict on each window of this batch
     result = {key: np.concatenate(value) if key != "state" else np.array(value) for key, value in out.items()}
     result["detected"] = result["state"] == "detected"
+    written = tmp_path_factory.mktemp("predictions")
+    PredictionCsvWriter(written).write(task, "predict")  # what aaute predict writes
+    result["csv"] = pd.read_csv(next(written.glob("*.csv")))
     return result
 
 
@@ -108,6 +113,16 @@ def test_live_rows_equal_offline_predictions_of_the_same_config(live_rows, offli
     assert np.array_equal([r.detected for r in live], offline["detected"])
     raw = np.array([r.raw for r in live])
     np.testing.assert_allclose(raw, offline["position"], atol=1e-4)  # float32 search, the same features
+
+
+def test_the_offline_prediction_file_says_what_each_position_is_as_the_live_rows_do(live_rows, offline):
+    table = offline["csv"]
+    assert list(table.columns) == ["timestamp", "x", "y", "z", "detection_score", "detected", "state"]
+    assert list(table["state"]) == list(offline["state"])
+    assert np.array_equal(table["detected"].to_numpy(), offline["detected"].astype(int))
+    t = np.array([r.timestamp for r in live_rows])
+    live = [live_rows[i] for i in np.searchsorted(t, table["timestamp"].to_numpy() - 1e-5)]
+    np.testing.assert_allclose(table["detection_score"], [r.score for r in live], atol=1e-4)
 
 
 def test_rows_say_what_each_position_is(live_rows):

@@ -11,6 +11,7 @@ import torch
 from datamodules.features import PhaseWindows, mic_pairs, phase_features, phase_recipe
 from datamodules.recording import ArrayAudio, RecordingError
 from datamodules.simulate.microphones import distributed4
+from zoo.nets.phase.gate import WINDOW_STATES
 from zoo.nets.phase.steering import gather, pooled
 from zoo.registry import get_model
 
@@ -120,6 +121,7 @@ def test_srp_phat_never_detects_in_a_window_whose_node_clocks_are_uncorrected(ne
         out = net({"audio_phase": torch.stack([features, features]),
                    "uncorrected_clocks": torch.tensor([False, True])})
     assert out["detected"].tolist() == [True, False]
+    assert [WINDOW_STATES[i] for i in out["state"]] == ["detected", "uncorrected"]
     assert float(out["detection_score"][1]) == pytest.approx(float(out["detection_score"][0]))  # the peak is kept
     np.testing.assert_allclose(out["position"][1].numpy(), net.region.mean(dim=1).numpy(), atol=1e-5)
 
@@ -145,6 +147,7 @@ def test_srp_phat_holds_then_falls_back_to_the_sequence_mean(net):
         out = net({"audio_phase": features, "time": times, "sequence": torch.zeros(4, dtype=torch.long)})
     position = out["position"].numpy()
     assert out["detected"].tolist() == [True, True, False, False]
+    assert [WINDOW_STATES[i] for i in out["state"]] == ["detected", "detected", "held", "fallback"]
     np.testing.assert_allclose(position[2], position[1])  # held within hold_seconds
     np.testing.assert_allclose(position[3], position[:2].mean(axis=0), atol=1e-5)  # then the mean of detections
 
@@ -238,7 +241,7 @@ def test_test_time_smoothing_bridges_the_windows_a_net_did_not_detect():
              "gt": torch.from_numpy(gt), "gt_valid": torch.ones(80, dtype=torch.bool)}
     task.log = lambda *args, **kwargs: None  # no trainer attached: the logged values are not looked at
     task.on_test_epoch_start()
-    task._collect(0, batch, torch.from_numpy(position), torch.from_numpy(detected))
+    task._collect(0, batch, {"position": torch.from_numpy(position), "detected": torch.from_numpy(detected)})
     task._log_smoothed()
     smoothed = task.smoothed_predictions[0][0]
     expected = smooth_detected(make_smoother(preset="tuned", horizon=3.0), t, position, detected)

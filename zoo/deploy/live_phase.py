@@ -62,6 +62,7 @@ from zoo.deploy.tracking import (
     TrackingReport,
     load_net,
 )
+from zoo.nets.phase.gate import WINDOW_STATES
 from zoo.smoothing import ROBUST_PRESETS, OnlineRow, OnlineSmoother
 
 log = logging.getLogger(__name__)
@@ -471,9 +472,9 @@ class PhaseTracker(Tracker):
         with torch.inference_mode():
             out = self.model.net(inputs)
         positions = out["position"].double().numpy()
-        if "detected" in out:
+        if "state" in out:
             scores, detected = out["detection_score"].double().numpy(), out["detected"].numpy()
-            states = list(self.model.net.gate.states)
+            states = [WINDOW_STATES[i] for i in out["state"].tolist()]
         else:
             scores, detected, states = np.full(b, np.nan), np.ones(b, dtype=bool), ["estimate"] * b
         return [PhaseRow(t, positions[i], float(scores[i]), bool(detected[i]), states[i]) if corrected[i] else

@@ -18,6 +18,9 @@ import torch
 FALLBACKS = ("mean", "centre")
 #: what each window of the last :meth:`DetectionGate.apply` returned: a counted detection, a held one, a fallback
 STATES = ("detected", "held", "fallback")
+#: a window's state as SRP-PHAT reports it (its ``state`` output holds indices into this): the gate's, or
+#: ``uncorrected`` (nodes on separate clocks whose offsets were not corrected: no detection counts there)
+WINDOW_STATES = (*STATES, "uncorrected")
 
 
 @dataclass

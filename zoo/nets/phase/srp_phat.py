@@ -34,8 +34,10 @@ test and predict loaders give them); without them every window stands alone. A w
 differences carry the clocks' offsets, milliseconds that move a peak by metres) is never a detection.
 
 Outputs: ``position`` (B x 3), ``detection_score`` (B: the window's highest frame response over the
-threshold; above 1 means detected) and ``detected`` (B, bool). ``fit`` trains nothing: the net has
-no trainable parameters, so ``aaute fit`` returns at once and ``aaute test`` evaluates it directly.
+threshold; above 1 means detected), ``detected`` (B, bool) and ``state`` (B, indices into
+:data:`~zoo.nets.phase.gate.WINDOW_STATES`: detected, held, fallback or uncorrected). ``fit`` trains
+nothing: the net has no trainable parameters, so ``aaute fit`` returns at once and ``aaute test``
+evaluates it directly.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ import torch
 
 from datamodules.features import phase_recipe
 from zoo.nets.base import TrajectoryNet
-from zoo.nets.phase.gate import DetectionGate
+from zoo.nets.phase.gate import WINDOW_STATES, DetectionGate
 from zoo.nets.phase.null import white_noise_correlations
 from zoo.nets.phase.search import FIT_STEPS, CandidateSearch
 from zoo.nets.phase.steering import SPEED_OF_SOUND, Steering, default_mics, geometry_groups, search_region, with_bounds
@@ -240,10 +242,15 @@ class SRPPhat(TrajectoryNet):
                 detected[rows] = hit.any(dim=1)
         uncorrected = inputs.get("uncorrected_clocks")
         if uncorrected is not None:  # time differences off by the nodes' clock offsets: a peak there is no fix
-            detected &= ~uncorrected.to(torch.bool).cpu()
+            uncorrected = uncorrected.to(torch.bool).cpu()
+            detected &= ~uncorrected
         positions, detected = self.hold_or_fallback(positions, detected, inputs.get("sequence"), inputs.get("time"))
+        states = torch.tensor([WINDOW_STATES.index(state) for state in self.gate.states], dtype=torch.long)
+        if uncorrected is not None:
+            states[uncorrected] = WINDOW_STATES.index("uncorrected")
         return {"position": positions.to(phase.dtype).to(phase.device),
-                "detection_score": scores.to(phase.dtype).to(phase.device), "detected": detected.to(phase.device)}
+                "detection_score": scores.to(phase.dtype).to(phase.device), "detected": detected.to(phase.device),
+                "state": states.to(phase.device)}
 
     @staticmethod
     def window_positions(points: torch.Tensor, hit: torch.Tensor) -> torch.Tensor:
