@@ -25,14 +25,12 @@ log = logging.getLogger(__name__)
 
 def _smoothed(rows, preset: str, lag: float) -> tuple[np.ndarray, np.ndarray]:
     """The gated smoother's means and stds (N x 3) over the raw rows at ``lag``."""
-    from zoo.deploy.live_phase import GatedSmoothing, PhaseRow
+    from zoo.deploy.live_phase import smooth_rows
     from zoo.smoothing import OnlineSmoother
 
-    gated = GatedSmoothing(OnlineSmoother(preset, lag=lag))
-    out = []
-    for row in rows:
-        out += gated.add(PhaseRow(row.timestamp, row.raw, row.score, row.detected, row.state))
-    out += gated.flush()
+    out = smooth_rows(np.array([r.timestamp for r in rows]), np.array([r.raw for r in rows]),
+                      np.array([r.score for r in rows]), np.array([r.detected for r in rows]),
+                      np.array([r.state for r in rows]), OnlineSmoother(preset, lag=lag))
     return np.array([r.mean for r in out]), np.array([r.std for r in out])
 
 

@@ -224,3 +224,60 @@ def test_the_command_keeps_third_party_deprecation_noise_off_the_console(tmp_pat
     assert done.returncode == 0, done.stderr
     assert "Warning" not in done.stderr and "deprecated" not in done.stderr, done.stderr  # gpytorch's torch.jit
     assert done.stderr.startswith("INFO aaute: smoothed 20 points")
+
+
+def _detecting_track(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A detecting localiser's track (``srp_phat``'s ``aaute predict`` CSV) of a drone flying a straight line:
+    detections near it, a gap held at the last detection and a stretch fallen back to a far centre."""
+    import pandas as pd
+
+    t = 100.0 + np.arange(120) * 0.1
+    truth = np.stack([np.linspace(0, 6, t.size), np.full(t.size, 15.0), np.full(t.size, 10.0)], axis=1)
+    raw = truth + np.random.default_rng(1).normal(0, 0.3, truth.shape)
+    state = np.array(["detected"] * t.size, dtype=object)
+    state[40:55] = "held"
+    raw[40:55] = raw[39]
+    state[90:110] = "fallback"
+    raw[90:110] = [3.0, 10.0, 12.75]
+    detected = (state == "detected").astype(int)
+    score = np.where(detected == 1, 3.0, 0.6)
+    pd.DataFrame({"timestamp": t, "x": raw[:, 0], "y": raw[:, 1], "z": raw[:, 2], "detection_score": score,
+                  "detected": detected, "state": state}).to_csv(path, index=False)
+    return t, truth
+
+
+def test_smooth_bridges_a_detecting_localisers_held_and_fallback_rows_from_its_detections(tmp_path, capsys):
+    import pandas as pd
+
+    from zoo.smoothing import make_smoother, smooth_detected
+
+    src = tmp_path / "sim0_0012_ideal.csv"
+    t, truth = _detecting_track(src)
+    table = pd.read_csv(src)
+    plain = tmp_path / "plain.csv"
+    table[["timestamp", "x", "y", "z"]].to_csv(plain, index=False)
+    assert main(["smooth", str(src), str(tmp_path / "gated.csv"), "--preset", "tuned", "--horizon", "3"]) == 0
+    assert main(["smooth", str(plain), str(tmp_path / "all.csv"), "--preset", "tuned", "--horizon", "3"]) == 0
+    gated, every = pd.read_csv(tmp_path / "gated.csv"), pd.read_csv(tmp_path / "all.csv")
+    xyz = table[["x", "y", "z"]].to_numpy()
+    expected = smooth_detected(make_smoother("tuned", horizon=3.0), t, xyz, table["detected"].to_numpy(bool))
+    np.testing.assert_allclose(gated[["x", "y", "z"]].to_numpy(), expected, atol=1e-6)  # as aaute test does it
+    fallen = slice(90, 110)
+    error = {name: np.linalg.norm(out[["x", "y", "z"]].to_numpy()[fallen] - truth[fallen], axis=1).mean()
+             for name, out in (("gated", gated), ("every", every))}
+    assert error["gated"] < 1.0 < error["every"]  # the fallback centre is no measurement to follow
+
+    assert main(["smooth", str(src), str(tmp_path / "live.csv"), "--preset", "srp_phat", "--lag", "1"]) == 0
+    live = pd.read_csv(tmp_path / "live.csv")
+    assert np.isnan(live["std_x"].to_numpy()[fallen]).all()  # aaute track's fallback rows: own position, no std
+    np.testing.assert_allclose(live[["x", "y", "z"]].to_numpy()[fallen], xyz[fallen])
+    assert np.isfinite(live["std_x"].to_numpy()[:90]).all()
+
+    table["detected"] = table["detected"].astype(str)
+    table.loc[7, "detected"] = "yes"
+    table.to_csv(src, index=False)
+    capsys.readouterr()
+    assert main(["smooth", str(src), str(tmp_path / "never.csv")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and "sim0_0012_ideal.csv: column 'detected' is not 0 or 1 on data row 8: 'yes'" in err[0]
+    assert not (tmp_path / "never.csv").exists()

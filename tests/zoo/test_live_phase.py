@@ -125,6 +125,25 @@ def test_the_offline_prediction_file_says_what_each_position_is_as_the_live_rows
     np.testing.assert_allclose(table["detection_score"], [r.score for r in live], atol=1e-4)
 
 
+def test_smoothing_the_offline_predictions_gives_the_live_smoothed_rows(live_rows, offline, tmp_path):
+    """``aaute predict`` then ``aaute smooth --preset srp_phat --lag 0`` is what ``aaute track`` writes."""
+    from benchmarks.cli import main
+
+    src = tmp_path / "predictions.csv"
+    offline["csv"].to_csv(src, index=False)
+    assert main(["smooth", str(src), str(tmp_path / "smoothed.csv"), "--preset", "srp_phat", "--lag", "0"]) == 0
+    smoothed = pd.read_csv(tmp_path / "smoothed.csv")
+    t = np.array([r.timestamp for r in live_rows])
+    index = np.searchsorted(t, smoothed["timestamp"].to_numpy() - 1e-5)
+    assert np.all(np.abs(t[index] - smoothed["timestamp"].to_numpy()) < 1e-5)
+    assert len(t) - len(index) <= 1, "the live rows past the last label time are the only ones predict has not"
+    live = [live_rows[i] for i in index]
+    assert {r.state for r in live} >= {"detected", "fallback"}
+    for columns, values in ((["x", "y", "z"], [r.mean for r in live]),
+                            (["std_x", "std_y", "std_z"], [r.std for r in live])):  # fallback rows: NaN in both
+        np.testing.assert_allclose(smoothed[columns].to_numpy(), np.array(values), atol=1e-4)  # raw rows' 1e-4
+
+
 def test_rows_say_what_each_position_is(live_rows):
     for row in live_rows:
         assert row.state in ("detected", "held", "fallback")

@@ -370,6 +370,18 @@ class GatedSmoothing:
         return out
 
 
+def smooth_rows(timestamps: np.ndarray, raw: np.ndarray, scores: np.ndarray, detected: np.ndarray,
+                states: np.ndarray, smoother: OnlineSmoother) -> list[PhaseRow]:
+    """A detecting localiser's rows (``aaute predict``'s, or stored ones) smoothed as ``aaute track`` smooths
+    them (:class:`GatedSmoothing`), in time order."""
+    gated = GatedSmoothing(smoother)
+    rows: list[PhaseRow] = []
+    for i in np.argsort(timestamps, kind="stable"):
+        rows += gated.add(PhaseRow(float(timestamps[i]), np.asarray(raw[i], dtype=np.float64), float(scores[i]),
+                                   bool(detected[i]), str(states[i])))
+    return rows + gated.flush()
+
+
 class PhaseCsvWriter:
     """Rows of :data:`PHASE_COLUMNS` as CSV lines, each flushed at once."""
 

@@ -24,6 +24,7 @@ from zoo.smoothing.factory import (
     DEFAULT_PRESET,
     make_smoother,
     smooth_detected,
+    smooth_detected_track,
     smooth_predictions,
     smooth_track_file,
 )
@@ -49,6 +50,7 @@ from zoo.smoothing.robust import (
     fit_robust_hyperparameters,
 )
 from zoo.smoothing.track import (
+    DETECTION_COLUMNS,
     SMOOTHED_COLUMNS,
     TRACK_COLUMNS,
     TRACK_KEYS,
@@ -66,6 +68,7 @@ from zoo.smoothing.track import (
 __all__ = [
     "BACKENDS",
     "DEFAULT_PRESET",
+    "DETECTION_COLUMNS",
     "DOF_BOUNDS",
     "KERNELS",
     "LOCAL_TOLERANCE",
@@ -97,6 +100,7 @@ __all__ = [
     "read_track_csv",
     "read_tracks_csv",
     "smooth_detected",
+    "smooth_detected_track",
     "smooth_online",
     "smooth_predictions",
     "smooth_track_file",

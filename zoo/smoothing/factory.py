@@ -10,6 +10,7 @@ a CSV file.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Hashable, Sequence
 from pathlib import Path
@@ -43,12 +44,18 @@ def make_smoother(preset: str | None = None, **options: object) -> Smoother:
 
 
 def smooth_detected(smoother: Smoother, timestamps: np.ndarray, xyz: np.ndarray, detected: np.ndarray) -> np.ndarray:
-    """One sequence's smoothed positions (N x 3) at every timestamp, from the detected rows alone.
+    """One sequence's smoothed positions (N x 3): the mean of :func:`smooth_detected_track`."""
+    return smooth_detected_track(smoother, timestamps, xyz, detected).mean
+
+
+def smooth_detected_track(smoother: Smoother, timestamps: np.ndarray, xyz: np.ndarray, detected: np.ndarray
+                          ) -> SmoothedTrack:
+    """One sequence smoothed at every timestamp from its detected rows alone.
 
     Rows a net marks undetected hold a remembered or fallback position, not a measurement: the smoother
     bridges them from the detections, and keeps the net's own position where the nearest detection is
-    beyond its horizon (there it would only drift back to the detections' mean). With fewer than two
-    detections, or no detection flags at all, every row is smoothed.
+    beyond its horizon (there it would only drift back to the detections' mean; the std stays the
+    smoother's). With fewer than two detections, or no detection flags at all, every row is smoothed.
     """
     t = np.asarray(timestamps, dtype=np.float64)
     positions = np.asarray(xyz, dtype=np.float64)
@@ -56,7 +63,7 @@ def smooth_detected(smoother: Smoother, timestamps: np.ndarray, xyz: np.ndarray,
     if int(measured.sum()) < 2:
         measured = np.ones(len(t), dtype=bool)
     track = smoother.smooth(t[measured], positions[measured], t)  # every query is measured when all are
-    return np.where(track.beyond_horizon[:, None], positions, np.asarray(track.mean))
+    return dataclasses.replace(track, mean=np.where(track.beyond_horizon[:, None], positions, np.asarray(track.mean)))
 
 
 def smooth_predictions(

@@ -25,6 +25,8 @@ TRACK_COLUMNS = ("timestamp", "x", "y", "z")
 #: columns that tell several tracks of one file apart (a benchmark's ``predictions.csv``: flights x lights)
 TRACK_KEYS = ("sequence_id", "light")
 SMOOTHED_COLUMNS = (*TRACK_COLUMNS, "std_x", "std_y", "std_z")
+#: what a detecting localiser (SRP-PHAT) adds to each row of its tracks (``aaute predict``, ``aaute track``)
+DETECTION_COLUMNS = ("detection_score", "detected", "state")
 #: The torch dtype of every smoothing computation: relative times of long tracks need float64.
 DTYPE = torch.float64
 
@@ -198,19 +200,26 @@ def read_track_csv(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class TrackPart:
-    """One track of a track file: its :data:`TRACK_KEYS` values (empty for a single-track file) and its points."""
+    """One track of a track file: its :data:`TRACK_KEYS` values (empty for a single-track file), its points and,
+    from a detecting localiser's file (:data:`DETECTION_COLUMNS`), each row's detection score, detected flag
+    and state (``detected``, ``held``, ``fallback``, ...)."""
 
     keys: dict[str, str]
     timestamps: np.ndarray
     xyz: np.ndarray
+    scores: np.ndarray | None = None
+    detected: np.ndarray | None = None
+    states: np.ndarray | None = None
 
 
 def read_tracks_csv(path: Path) -> list[TrackPart]:
-    """The tracks of a ``timestamp,x,y,z`` CSV, one per value of its :data:`TRACK_KEYS` columns (in file order).
+    """The tracks of a ``timestamp,x,y,z`` CSV, one per value of its :data:`TRACK_KEYS` columns (in file order),
+    with their :data:`DETECTION_COLUMNS` when the file has all three.
 
     Raises:
-        TrackFileError: unreadable file, missing columns, non-numeric or non-finite values, < 2 rows, or a
-            timestamp repeated within one track (several tracks in a file without their key columns).
+        TrackFileError: unreadable file, missing columns, non-numeric or non-finite values, < 2 rows, a
+            timestamp repeated within one track (several tracks in a file without their key columns), or
+            detection columns that are not a number, 0 / 1 and a name.
     """
     path = Path(path)
     try:
@@ -235,6 +244,7 @@ def read_tracks_csv(path: Path) -> list[TrackPart]:
                                  f"{frame[column].iloc[row]!r}")
         values[column] = numbers
     xyz = np.stack([values["x"], values["y"], values["z"]], axis=1)
+    detection = _detection_columns(path, frame) if all(c in frame.columns for c in DETECTION_COLUMNS) else None
     keys = [column for column in TRACK_KEYS if column in frame.columns]
     groups = frame.groupby(keys, sort=False).indices.items() if keys else [((), np.arange(len(frame)))]
     parts = []
@@ -248,8 +258,23 @@ def read_tracks_csv(path: Path) -> list[TrackPart]:
             hint = "" if named else f" (several tracks in one file need the columns {', '.join(TRACK_KEYS)})"
             raise TrackFileError(f"{path}: timestamp {frame['timestamp'].iloc[first].strip()} repeated on data row "
                                  f"{first + 1}{where}; expected one position per time{hint}")
-        parts.append(TrackPart(named, t, xyz[rows]))
+        parts.append(TrackPart(named, t, xyz[rows], *([c[rows] for c in detection] if detection else [])))
     return parts
+
+
+def _detection_columns(path: Path, frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scores (float, NaN allowed), detected flags (bool) and states (str) of a track file's rows."""
+    text = {column: frame[column].str.strip() for column in DETECTION_COLUMNS}
+    scores = pd.to_numeric(text["detection_score"], errors="coerce")  # "nan" and "" read as NaN
+    checks = {"detection_score": ("a number", scores.isna() & ~text["detection_score"].str.lower().isin(["nan", ""])),
+              "detected": ("0 or 1", ~text["detected"].isin(["0", "1"])),
+              "state": ("a state name", text["state"] == "")}
+    for column, (expected, bad) in checks.items():
+        if bad.any():
+            row = int(np.flatnonzero(bad.to_numpy())[0])
+            raise TrackFileError(f"{path}: column {column!r} is not {expected} on data row {row + 1}: "
+                                 f"{frame[column].iloc[row]!r}")
+    return scores.to_numpy(dtype=np.float64), (text["detected"] == "1").to_numpy(), text["state"].to_numpy(dtype=str)
 
 
 def write_smoothed_tracks(path: Path, parts: Sequence[tuple[dict[str, str], SmoothedTrack]],
