@@ -266,6 +266,11 @@ def test_smooth_bridges_a_detecting_localisers_held_and_fallback_rows_from_its_d
     error = {name: np.linalg.norm(out[["x", "y", "z"]].to_numpy()[fallen] - truth[fallen], axis=1).mean()
              for name, out in (("gated", gated), ("every", every))}
     assert error["gated"] < 1.0 < error["every"]  # the fallback centre is no measurement to follow
+    flags_only = tmp_path / "flags.csv"  # any track that says which rows were measured
+    table[["timestamp", "x", "y", "z", "detected"]].to_csv(flags_only, index=False)
+    assert main(["smooth", str(flags_only), str(tmp_path / "flags_out.csv"), "--preset", "tuned",
+                 "--horizon", "3"]) == 0
+    np.testing.assert_allclose(pd.read_csv(tmp_path / "flags_out.csv")[["x", "y", "z"]], gated[["x", "y", "z"]])
 
     assert main(["smooth", str(src), str(tmp_path / "live.csv"), "--preset", "srp_phat", "--lag", "1"]) == 0
     live = pd.read_csv(tmp_path / "live.csv")

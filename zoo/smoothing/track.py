@@ -214,7 +214,7 @@ class TrackPart:
 
 def read_tracks_csv(path: Path) -> list[TrackPart]:
     """The tracks of a ``timestamp,x,y,z`` CSV, one per value of its :data:`TRACK_KEYS` columns (in file order),
-    with their :data:`DETECTION_COLUMNS` when the file has all three.
+    with their :data:`DETECTION_COLUMNS` when the file has a ``detected`` column.
 
     Raises:
         TrackFileError: unreadable file, missing columns, non-numeric or non-finite values, < 2 rows, a
@@ -244,7 +244,7 @@ def read_tracks_csv(path: Path) -> list[TrackPart]:
                                  f"{frame[column].iloc[row]!r}")
         values[column] = numbers
     xyz = np.stack([values["x"], values["y"], values["z"]], axis=1)
-    detection = _detection_columns(path, frame) if all(c in frame.columns for c in DETECTION_COLUMNS) else None
+    detection = _detection_columns(path, frame) if "detected" in frame.columns else None
     keys = [column for column in TRACK_KEYS if column in frame.columns]
     groups = frame.groupby(keys, sort=False).indices.items() if keys else [((), np.arange(len(frame)))]
     parts = []
@@ -263,8 +263,14 @@ def read_tracks_csv(path: Path) -> list[TrackPart]:
 
 
 def _detection_columns(path: Path, frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Scores (float, NaN allowed), detected flags (bool) and states (str) of a track file's rows."""
-    text = {column: frame[column].str.strip() for column in DETECTION_COLUMNS}
+    """Scores (float, NaN allowed), detected flags (bool) and states (str) of a track file's rows; without a
+    ``detection_score`` column every score is NaN, without ``state`` a row is ``detected`` or ``fallback``."""
+    flags = frame["detected"].str.strip()
+    text = {"detected": flags,
+            "detection_score": frame["detection_score"].str.strip() if "detection_score" in frame.columns
+            else pd.Series("nan", index=frame.index),
+            "state": frame["state"].str.strip() if "state" in frame.columns
+            else flags.map({"1": "detected"}).fillna("fallback")}
     scores = pd.to_numeric(text["detection_score"], errors="coerce")  # "nan" and "" read as NaN
     checks = {"detection_score": ("a number", scores.isna() & ~text["detection_score"].str.lower().isin(["nan", ""])),
               "detected": ("0 or 1", ~text["detected"].isin(["0", "1"])),
