@@ -160,8 +160,11 @@ def breakdown(frame: pd.DataFrame) -> dict[str, float]:
 
 
 def _write_predictions(path: Path, frame: pd.DataFrame) -> str:
+    from zoo.smoothing import DETECTION_COLUMNS
+
+    columns = PREDICTION_COLUMNS + [column for column in DETECTION_COLUMNS if column in frame.columns]
     with atomic_write(path) as tmp:
-        frame[PREDICTION_COLUMNS].to_csv(tmp, index=False, float_format="%.4f")
+        frame[columns].to_csv(tmp, index=False, float_format="%.4f")
     return str(path)
 
 
@@ -243,7 +246,10 @@ def _single_process_tester(trainer, job_dir: Path):
 
 
 def _prediction_frame(task, datamodule) -> pd.DataFrame:
-    """Every test window of the last test run: prediction, ground truth and smoothed position."""
+    """Every test window of the last test run: prediction, ground truth and smoothed position (and for a net
+    that detects, its :func:`~zoo.callbacks.detection_columns`)."""
+    from zoo.callbacks import detection_columns
+
     sequences = _sequence_table(datamodule)
     parts = []
     for index, light in enumerate(datamodule.test_lights):
@@ -255,6 +261,8 @@ def _prediction_frame(task, datamodule) -> pd.DataFrame:
             part[["x", "y", "z"]] = seq["position"]
             part[["gt_x", "gt_y", "gt_z"]] = seq["gt"]
             part[["smooth_x", "smooth_y", "smooth_z"]] = smoothed.get(seq_index, np.full_like(seq["position"], np.nan))
+            for column, values in detection_columns(seq).items():  # srp_phat: which windows it detected
+                part[column] = values
             parts.append(part)
     if not parts:
         raise ValueError("the test run produced no predictions")

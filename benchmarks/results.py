@@ -68,7 +68,8 @@ BOUND = ["bound_median_m", "snr_source", "bound_band_hz"]
 COLUMNS = IDENTITY + METHOD + DATA + BUDGET + METRICS + BREAKDOWN + PROFILE + BOUND + PROVENANCE
 #: columns added to schema 1 after its first files were written: empty when an older file lacks them
 LATER_COLUMNS = ("smoother", "slurm_job_id", "node", *BOUND, "peak_rss_mb")
-#: columns of a model job's per-window predictions CSV (``predictions_path``; written by jobs, read by plots)
+#: columns of a model job's per-window predictions CSV (``predictions_path``; written by jobs, read by plots); a net
+#: that detects (``srp_phat``) adds ``detection_score, detected, state`` after them
 PREDICTION_COLUMNS = ["sequence_id", "recording_id", "drone", "light", "timestamp", "x", "y", "z",
                       "gt_x", "gt_y", "gt_z", "gt_valid", "smooth_x", "smooth_y", "smooth_z"]
 

@@ -42,6 +42,15 @@ class PredictionSource(Protocol):
         ...
 
 
+def detection_columns(sequence: dict[str, np.ndarray]) -> dict[str, Any]:
+    """``detection_score``, ``detected`` (0 / 1) and ``state`` of a sequence's collected predictions when its net
+    detects (SRP-PHAT: the columns ``aaute track`` writes for it), else nothing."""
+    if "state" not in sequence:
+        return {}
+    return {"detection_score": sequence["detection_score"], "detected": sequence["detected"].astype(int),
+            "state": [WINDOW_STATES[i] for i in sequence["state"]]}
+
+
 class PredictionCsvWriter(BasePredictionWriter):
     """One CSV of predicted positions per sequence and light condition, at the end of test and predict.
 
@@ -73,10 +82,8 @@ class PredictionCsvWriter(BasePredictionWriter):
                 name = names[index] if index < len(names) else f"sequence{index}"
                 frame = pd.DataFrame({"timestamp": sequence["time"], "x": sequence["position"][:, 0],
                                       "y": sequence["position"][:, 1], "z": sequence["position"][:, 2]})
-                if "state" in sequence:  # a net that detects: the columns aaute track writes for it
-                    frame["detection_score"] = sequence["detection_score"]
-                    frame["detected"] = sequence["detected"].astype(int)
-                    frame["state"] = [WINDOW_STATES[i] for i in sequence["state"]]
+                for column, values in detection_columns(sequence).items():
+                    frame[column] = values
                 with atomic_write(out / f"{name}_{light}.csv") as tmp:
                     frame.to_csv(tmp, index=False, float_format="%.6f")
         log.info("%s predictions written to %s", stage, out)

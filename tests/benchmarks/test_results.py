@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+import pandas as pd
 import pytest
 
 from benchmarks.results import COLUMNS, SCHEMA_VERSION, ResultsError, append_rows, latest, read_results
@@ -105,3 +107,27 @@ def test_columns_a_user_added_are_kept_when_rows_are_appended(tmp_path):
     assert frame["E_ideal"].tolist() == [7.5, 7.5]
     append_rows(path, [{**ROW, "job_id": "third"}])  # now in place: a plain append
     assert read_results(path)["notes"].tolist() == ["rerun, lr too high", "", ""]
+
+
+def test_a_detecting_nets_prediction_file_says_which_windows_it_detected(tmp_path):
+    """srp_phat's job file carries detection_score, detected and state, so aaute smooth and readers can tell its
+    held and fallback positions from its detections; another net's file keeps the plain columns."""
+    from types import SimpleNamespace
+
+    from benchmarks.jobs import _prediction_frame, _write_predictions
+    from benchmarks.results import PREDICTION_COLUMNS
+    from zoo.smoothing import read_tracks_csv
+
+    piece = SimpleNamespace(sequence_id="sim0_0001", recording_id="sim0_0001", drone="avata")
+    datamodule = SimpleNamespace(test_lights=["ideal"], sequences={"test": [piece]})
+    plain = {"time": 100 + np.arange(4) * 0.1, "gt_valid": np.ones(4, dtype=bool), "position": np.zeros((4, 3)),
+             "gt": np.ones((4, 3)), "detected": np.ones(4, dtype=bool)}
+    detecting = dict(plain, detected=np.array([True, False, False, False]),
+                     detection_score=np.array([2.0, 0.5, 0.4, 0.3]), state=np.array([0, 1, 2, 3]))
+    for sequence, extra in ((plain, []), (detecting, ["detection_score", "detected", "state"])):
+        task = SimpleNamespace(smoothed_predictions={}, sequence_predictions=lambda index, s=sequence: {0: s})
+        path = _write_predictions(tmp_path / "predictions.csv", _prediction_frame(task, datamodule))
+        table = pd.read_csv(path)
+        assert list(table.columns) == PREDICTION_COLUMNS + extra
+    assert list(table["state"]) == ["detected", "held", "fallback", "uncorrected"]
+    assert read_tracks_csv(path)[0].detected.tolist() == [True, False, False, False]
