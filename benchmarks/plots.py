@@ -92,7 +92,8 @@ def save_png(figure: Figure, path: Path) -> bytes:
 def trajectory_figure(methods: Sequence[tuple[str, pd.DataFrame]], constant: pd.DataFrame | None,
                       title: str) -> Figure:
     """x, y, z against time and a top view (x-y) of one flight: ground truth, each method's estimate (the first
-    one's smoothed estimate too) and the constant.
+    one's smoothed estimate too; a method whose windows say ``detected`` has its detections drawn as dots) and
+    the constant.
 
     Args:
         methods: (legend name, prediction windows of one sequence and light condition), best first; the ground
@@ -110,8 +111,14 @@ def trajectory_figure(methods: Sequence[tuple[str, pd.DataFrame]], constant: pd.
     series = [  # (label, windows, x/y/z columns, style against time, style in the top view)
         ("ground truth", gt, ("gt_x", "gt_y", "gt_z"), {"color": "black", "linewidth": 1.6}, None)]
     for index, (label, frame) in enumerate(methods):
-        series.append((label, frame, ("x", "y", "z"), {"color": f"C{2 * index}", "linewidth": 0.8, "marker": ".",
-                                                       "markersize": 2.5}, None))
+        line = {"color": f"C{2 * index}", "linewidth": 0.8, "marker": ".", "markersize": 2.5}
+        if "detected" not in frame.columns:
+            series.append((label, frame, ("x", "y", "z"), line, None))
+            continue
+        # a detecting method: its line without markers (held and fallback windows too), its detections as dots
+        series.append((label, frame, ("x", "y", "z"), {**line, "marker": None}, None))
+        series.append((f"{label}, detected", frame[frame["detected"] == 1], ("x", "y", "z"),
+                       {"color": line["color"], "linestyle": "none", "marker": "o", "markersize": 3.0}, None))
     if first["smooth_x"].notna().any():
         series.append((f"{first_label}, smoothed", first, ("smooth_x", "smooth_y", "smooth_z"),
                        {"color": "C1", "linewidth": 1.4}, None))
@@ -318,9 +325,12 @@ class SectionPlotter:
             reference = None if constant is None else constant[constant["sequence_id"] == sequence]
             title = f"{drone}, test flight {sequence} ({light} light), protocol {protocol}"
             figure = trajectory_figure(drawn, reference, title)
+            detecting = [label for label, frame in drawn if "detected" in frame.columns]
+            dots = (f" Dots mark the windows {', '.join(detecting)} detected the drone in; between them it holds "
+                    f"its last detection or falls back." if detecting else "")
             caption = (f"Estimated and true trajectory of one test flight of the {drone} ({light} light) for the "
                        f"best method of each category of Table {number}, {names}, beside the constant predictor "
-                       f"(the best one's smoothed estimate too): x, y, z against time and a top view.")
+                       f"(the best one's smoothed estimate too): x, y, z against time and a top view.{dots}")
             plots.append(self.save(figure, f"trajectory_{re.sub(r'[^A-Za-z0-9_.-]+', '_', str(drone))}.png",
                                    caption))
         return plots

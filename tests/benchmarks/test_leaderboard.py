@@ -432,3 +432,23 @@ def test_the_physical_limit_is_in_every_table_of_its_protocol_and_never_ranked(r
     assert limit not in markdown_grid(report.markdown, "Table 2:")  # its own protocol only
     assert "the black line is the per-window physical limit (CRLB)" in report.markdown  # figure captions
     assert "the black line is the physical limit (CRLB, RMS per band)" in report.markdown
+
+
+def test_a_detecting_methods_detections_are_dots_on_its_trajectory(results_csv, tmp_path):
+    from benchmarks.plots import read_predictions, trajectory_figure
+
+    path = results_csv.parent / "pred" / "srp_phat-s0.csv"
+    write_predictions(path, 2.0)
+    table = pd.read_csv(path)
+    table["detected"] = (np.arange(len(table)) % 3 == 0).astype(int)  # the others held or fallen back
+    table.to_csv(path, index=False)
+    flight = read_predictions(path).query("drone == 'avata'")
+    figure = trajectory_figure([("SRP-PHAT", flight)], None, "one flight")
+    lines = {line.get_label(): line for line in figure.axes[0].get_lines()}
+    assert len(lines["SRP-PHAT"].get_xdata()) == len(flight)
+    assert len(lines["SRP-PHAT, detected"].get_xdata()) == int(flight["detected"].sum()) < len(flight)
+    frame = pd.read_csv(results_csv)
+    frame.loc[frame["job_id"] == "srp_phat-by_sequence-s0", "predictions_path"] = "pred/srp_phat-s0.csv"
+    frame.to_csv(results_csv, index=False)
+    report = leaderboard.render_leaderboard(results_csv, tmp_path / "board")
+    assert "Dots mark the windows SRP_PHAT (grid 1 m, 100% of pairs) detected the drone in" in report.markdown
