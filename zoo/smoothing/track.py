@@ -263,9 +263,10 @@ def read_tracks_csv(path: Path) -> list[TrackPart]:
 
 
 def _detection_columns(path: Path, frame: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Scores (float, NaN allowed), detected flags (bool) and states (str) of a track file's rows; without a
-    ``detection_score`` column every score is NaN, without ``state`` a row is ``detected`` or ``fallback``."""
-    flags = frame["detected"].str.strip()
+    """Scores (float, NaN allowed), detected flags (bool: 0 / 1, 0.0 / 1.0 or false / true) and states (str) of a
+    track file's rows; without a ``detection_score`` column every score is NaN, without ``state`` a row is
+    ``detected`` or ``fallback``."""
+    flags = frame["detected"].str.strip().str.lower().replace({"1.0": "1", "0.0": "0", "true": "1", "false": "0"})
     text = {"detected": flags,
             "detection_score": frame["detection_score"].str.strip() if "detection_score" in frame.columns
             else pd.Series("nan", index=frame.index),
