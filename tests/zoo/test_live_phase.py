@@ -156,6 +156,24 @@ def test_rows_say_what_each_position_is(live_rows):
     assert np.all(np.diff(t) > 0)
 
 
+def test_smoothing_a_live_track_file_again_reads_its_raw_positions(live_rows, tmp_path):
+    """``aaute smooth`` of ``aaute track``'s own CSV smooths its ``raw_*`` (its ``x,y,z`` are smoothed already):
+    with the same preset and lag it gives the same rows back."""
+    from benchmarks.cli import main
+    from zoo.deploy.live_phase import PhaseCsvWriter
+
+    path = tmp_path / "track.csv"
+    with open(path, "w") as stream:
+        writer = PhaseCsvWriter(stream)
+        for row in live_rows:
+            writer.write(row)
+    assert main(["smooth", str(path), str(tmp_path / "again.csv"), "--preset", "srp_phat", "--lag", "0"]) == 0
+    again = pd.read_csv(tmp_path / "again.csv")
+    np.testing.assert_allclose(again[["x", "y", "z"]].to_numpy(), np.array([r.mean for r in live_rows]), atol=1e-4)
+    np.testing.assert_allclose(again[["std_x", "std_y", "std_z"]].to_numpy(), np.array([r.std for r in live_rows]),
+                               atol=1e-4)
+
+
 def test_gated_smoothing_feeds_measurements_only_and_keeps_time_order():
     """A fixed-lag smoother: a held row waits for the lag, and is written after the detection before it."""
     steps = [(0.1, "fallback"), (0.2, "detected"), (0.3, "detected"), (0.4, "held"), (0.5, "held"),

@@ -214,7 +214,8 @@ class TrackPart:
 
 def read_tracks_csv(path: Path) -> list[TrackPart]:
     """The tracks of a ``timestamp,x,y,z`` CSV, one per value of its :data:`TRACK_KEYS` columns (in file order),
-    with their :data:`DETECTION_COLUMNS` when the file has a ``detected`` column.
+    with their :data:`DETECTION_COLUMNS` when the file has a ``detected`` column. Of an ``aaute track`` output
+    (``raw_x,raw_y,raw_z`` beside its smoothed ``x,y,z``) the positions read are the raw ones.
 
     Raises:
         TrackFileError: unreadable file, missing columns, non-numeric or non-finite values, < 2 rows, a
@@ -233,8 +234,9 @@ def read_tracks_csv(path: Path) -> list[TrackPart]:
                              f"{','.join(TRACK_COLUMNS)}, found {list(frame.columns)}")
     if len(frame) < 2:
         raise TrackFileError(f"{path}: {len(frame)} data row(s); a track needs at least 2")
+    raw = all(f"raw_{axis}" in frame.columns for axis in "xyz")  # aaute track's rows: x,y,z are smoothed already
     values = {}
-    for column in TRACK_COLUMNS:
+    for column in ("timestamp", "raw_x", "raw_y", "raw_z") if raw else TRACK_COLUMNS:
         numbers = pd.to_numeric(frame[column].str.strip(), errors="coerce").to_numpy(dtype=np.float64)
         bad = np.flatnonzero(~np.isfinite(numbers))
         if bad.size:
@@ -242,7 +244,7 @@ def read_tracks_csv(path: Path) -> list[TrackPart]:
             raise TrackFileError(f"{path}: column {column!r} has {bad.size} missing, non-numeric or "
                                  f"non-finite value(s), first on data row {row + 1}: "
                                  f"{frame[column].iloc[row]!r}")
-        values[column] = numbers
+        values[column.removeprefix("raw_")] = numbers
     xyz = np.stack([values["x"], values["y"], values["z"]], axis=1)
     detection = _detection_columns(path, frame) if "detected" in frame.columns else None
     keys = [column for column in TRACK_KEYS if column in frame.columns]
