@@ -45,7 +45,7 @@ from datamodules.formats.mcap_file import read_mcap
 log = logging.getLogger(__name__)
 
 RECIPE = "gcc_phat_2s_static"
-TARGET_S = 5e-5  #: the issue's target: offsets within 0.05 ms of the truth
+TARGET_S = 5e-5  #: the target: offsets within 0.05 ms of the truth
 GRID = 121  #: times over the recording at which the offset error is taken
 
 
