@@ -88,9 +88,10 @@ def _cmd_smooth(args: argparse.Namespace) -> int:
 
 def _measured(part: TrackPart) -> tuple[np.ndarray, np.ndarray]:
     """A track's measured rows (its detections, when it says which): what a smoother is fitted to."""
-    if part.detected is None or int(part.detected.sum()) < 2:
-        return part.timestamps, part.xyz
-    return part.timestamps[part.detected], part.xyz[part.detected]
+    from zoo.smoothing import measured_rows
+
+    rows = measured_rows(part.detected, len(part.timestamps))
+    return part.timestamps[rows], part.xyz[rows]
 
 
 def _gated_online(part: TrackPart, smoother: OnlineSmoother) -> SmoothedTrack:

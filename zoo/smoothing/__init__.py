@@ -23,6 +23,7 @@ from zoo.smoothing.calibration import calibration_factor, coverage
 from zoo.smoothing.factory import (
     DEFAULT_PRESET,
     make_smoother,
+    measured_rows,
     smooth_detected,
     smooth_detected_track,
     smooth_predictions,
@@ -97,6 +98,7 @@ __all__ = [
     "fit_hyperparameters",
     "fit_robust_hyperparameters",
     "make_smoother",
+    "measured_rows",
     "read_track_csv",
     "read_tracks_csv",
     "smooth_detected",

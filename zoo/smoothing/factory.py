@@ -43,6 +43,13 @@ def make_smoother(preset: str | None = None, **options: object) -> Smoother:
     return GPSmoother(name, **options)  # type: ignore[arg-type]
 
 
+def measured_rows(detected: np.ndarray | None, count: int) -> np.ndarray:
+    """The rows (bool, ``count``) a smoother takes as measurements: the detected ones, or every row when there
+    are no detection flags or fewer than two detections."""
+    measured = np.ones(count, dtype=bool) if detected is None else np.asarray(detected, dtype=bool)
+    return measured if int(measured.sum()) >= 2 else np.ones(count, dtype=bool)
+
+
 def smooth_detected(smoother: Smoother, timestamps: np.ndarray, xyz: np.ndarray, detected: np.ndarray) -> np.ndarray:
     """One sequence's smoothed positions (N x 3): the mean of :func:`smooth_detected_track`."""
     return smooth_detected_track(smoother, timestamps, xyz, detected).mean
@@ -59,9 +66,7 @@ def smooth_detected_track(smoother: Smoother, timestamps: np.ndarray, xyz: np.nd
     """
     t = np.asarray(timestamps, dtype=np.float64)
     positions = np.asarray(xyz, dtype=np.float64)
-    measured = np.asarray(detected, dtype=bool)
-    if int(measured.sum()) < 2:
-        measured = np.ones(len(t), dtype=bool)
+    measured = measured_rows(detected, len(t))
     track = smoother.smooth(t[measured], positions[measured], t)  # every query is measured when all are
     return dataclasses.replace(track, mean=np.where(track.beyond_horizon[:, None], positions, np.asarray(track.mean)))
 
