@@ -359,21 +359,24 @@ def _section_order(key: tuple[str, str, str], first_seen: dict) -> tuple:
     return first_seen[("suite", suite)], protocol_rank, protocol, first_seen[key]
 
 
-def _learning_sentence(learning: pd.DataFrame | None, stats: pd.DataFrame, protocol: str) -> str:
-    """The caption's sentence on the learning curves of the table's trained models ('' without curves)."""
+def _learning_sentence(learning: pd.DataFrame | None, stats: pd.DataFrame, protocol: str, source: str) -> str:
+    """The caption's sentence on the learning curves of the table's trained models ('' without curves), read
+    from the file ``source``."""
     if learning is None:
         return ""
     from benchmarks.learning import learning_evidence  # matplotlib only where learning curves are given
 
     trained = stats[stats["kind"] == "model"]
     methods = dict(zip(trained["model"], trained["display"], strict=True))
-    return learning_evidence(learning, protocol, methods)
+    return learning_evidence(learning, protocol, methods, source=source)
 
 
-def build_sections(frame: pd.DataFrame, learning: pd.DataFrame | None = None) -> tuple[list[Section], pd.DataFrame]:
+def build_sections(frame: pd.DataFrame, learning: pd.DataFrame | None = None, learning_source: str = ""
+                   ) -> tuple[list[Section], pd.DataFrame]:
     """The sections (one per suite x protocol x data fingerprint) and the failed rows no section claims.
 
-    ``learning``: a learning suite's rows (newest per job); their curves are stated in the captions.
+    ``learning``: a learning suite's rows (newest per job), read from the file ``learning_source``; their curves
+    are stated in the captions.
     """
     ok = frame[frame["status"] == "ok"]
     entries = ok[ok["kind"].isin(["model", "constant", "bound"])]
@@ -408,7 +411,7 @@ def build_sections(frame: pd.DataFrame, learning: pd.DataFrame | None = None) ->
         if several_suites:
             title += f", suite {suite or '(none)'}"
         tables = _section_tables(number, title, rows, stats, protocol, failed[mine],
-                                 _learning_sentence(learning, stats, protocol))
+                                 _learning_sentence(learning, stats, protocol, learning_source))
         sections.append(Section(number, suite, protocol, fingerprint, rows, stats, tables))
     return sections, failed[~claimed]
 
@@ -516,7 +519,8 @@ def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots
         suite: only this suite's rows (default: all, one table per suite x protocol x data fingerprint).
         plots: draw the figures (prediction files that are missing skip their plot with a warning).
         learning: a learning suite's results.csv (``configs/benchmark/learning.yaml``): each caption states
-            the learning curves of its table's models (E at each data size against that data's constant).
+            the learning curves of its table's models (E at each data size against that data's constant), and
+            the first table's plots end with their figure.
 
     Raises:
         ResultsError: the file is not a results.csv of this schema (missing columns, other version).
@@ -529,7 +533,7 @@ def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots
         from benchmarks.learning import read_learning
 
         curves = read_learning(Path(learning))
-    sections, orphans = build_sections(frame, curves)
+    sections, orphans = build_sections(frame, curves, str(learning) if learning is not None else "")
     warnings: list[str] = []
 
     def warn(message: str) -> None:
@@ -544,6 +548,10 @@ def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots
         for section in sections:
             section.plots = plotter.draw(section.stats, section.number, section.protocol, RANGE_LABELS,
                                          trajectories=section is main)
+        if curves is not None:
+            from benchmarks.learning import learning_plot
+
+            main.plots.append(learning_plot(curves, Path(learning), out / "plots"))
     orphan_notes = [_failed_note(row) for _, row in orphans.iterrows()]
     intro = _intro(results.name, frame, sections, suite)
     markdown = _markdown(intro, sections, orphan_notes, out)

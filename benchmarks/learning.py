@@ -21,7 +21,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from benchmarks.plots import BOUND_STYLE, MARGINS, REFERENCE_STYLE, save_png
+from benchmarks.plots import BOUND_STYLE, MARGINS, REFERENCE_STYLE, Plot, save_png
 from benchmarks.results import ResultsError, latest, read_results
 
 
@@ -84,13 +84,23 @@ def _dark_clause(curve: pd.DataFrame, dark: pd.DataFrame) -> str:
             f"({last['E_dark'] / last['E']:.2f} × its E in ideal light)")
 
 
-def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, str], light: str = "ideal") -> str:
+def _measured_by(frame: pd.DataFrame, source: str) -> str:
+    """Where curves come from: the file (if named), the suite(s) and the commit(s) their model rows ran at."""
+    trained = frame[frame["kind"] == "model"]
+    suites = ", ".join(dict.fromkeys(trained["suite"].dropna().astype(str))) or "not recorded"
+    commits = ", ".join(dict.fromkeys(trained["git_commit"].dropna().astype(str).str[:7]))
+    return f"{f'{source}, ' if source else ''}suite {suites}{f' at commit {commits}' if commits else ''}"
+
+
+def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, str], light: str = "ideal",
+                      source: str = "") -> str:
     """A caption's sentence on the learning curves of ``methods`` (model -> name in the table), '' if none.
 
-    ``frame``: the rows of a learning suite's ``results.csv`` (newest per job). Each model is stated by its E
-    at the smallest and the largest data size, its best, and the sizes at which it is below the constant of the
-    same data, so a reader sees whether a row fails for lack of data or whatever the data; a model that reads
-    images also by its E in darkness (does it see the drone at all?).
+    ``frame``: the rows of a learning suite's ``results.csv`` (newest per job), read from ``source`` (named in
+    the sentence with the suite and the commit its rows ran at). Each model is stated by its E at the smallest
+    and the largest data size, its best, and the sizes at which it is below the constant of the same data, so a
+    reader sees whether a row fails for lack of data or whatever the data; a model that reads images also by its
+    E in darkness (does it see the drone at all?).
     """
     rows = frame[frame["protocol"] == protocol]
     points = curve_points(rows, light)
@@ -100,7 +110,6 @@ def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, 
     constant = reference_level(rows, "constant", light)
     bound = reference_level(rows, "bound", light)
     trained = rows[rows["kind"] == "model"]
-    suites = ", ".join(dict.fromkeys(trained["suite"].dropna().astype(str))) or "not recorded"
     data = "; ".join(dict.fromkeys(trained["data"].dropna().astype(str))) or "data not recorded"
     seeds = int(points["seeds"].max())
     references = [f"constant (mean train GT) {constant:.2f} m" if constant is not None else "no constant row"]
@@ -110,7 +119,7 @@ def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, 
     clauses = [_model_clause(name, points[points["model"] == model], constant)
                + _dark_clause(points[points["model"] == model], dark[dark["model"] == model])
                for model, name in methods.items() if model in set(points["model"])]
-    return (f"Learning curves (suite {suites}: {data}; protocol {protocol}; E under {light} light, "
+    return (f"Learning curves ({_measured_by(rows, source)}: {data}; protocol {protocol}; E under {light} light, "
             f"{'one seed' if seeds == 1 else f'mean over up to {seeds} seeds'} per size; its own "
             f"{', '.join(references)}): {'; '.join(clauses)}.")
 
@@ -138,17 +147,32 @@ def learning_figure(points: pd.DataFrame, constant: float | None, bound: float |
     return figure
 
 
-def learning_curves(results: Path, out: Path, light: str = "ideal") -> pd.DataFrame:
-    """Draw the learning curves of ``results`` into ``out`` (PNG) and return their points."""
-    frame = latest(read_results(results))
+def _draw(frame: pd.DataFrame, source: Path, out: Path, light: str) -> tuple[pd.DataFrame, bytes]:
+    """Draw the learning curves of a learning suite's rows (newest per job) into ``out`` (PNG): their points and
+    the PNG bytes."""
     points = curve_points(frame, light)
     if points.empty:
-        raise ResultsError(f"{results}: no successful model rows with E under {light} light to draw")
+        raise ResultsError(f"{source}: no successful model rows with E under {light} light to draw")
     figure = learning_figure(points, reference_level(frame, "constant", light), reference_level(frame, "bound", light),
                              f"Learning curves ({', '.join(frame['suite'].dropna().unique())})")
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_png(figure, out)
-    return points
+    return points, save_png(figure, out)
+
+
+def learning_curves(results: Path, out: Path, light: str = "ideal") -> pd.DataFrame:
+    """Draw the learning curves of ``results`` into ``out`` (PNG) and return their points."""
+    return _draw(latest(read_results(results)), results, out, light)[0]
+
+
+def learning_plot(frame: pd.DataFrame, source: Path, plot_dir: Path) -> Plot:
+    """The leaderboard's figure of a learning suite's curves (rows of ``source``, newest per job), ideal light,
+    as ``learning_curves.png`` in ``plot_dir``, with a caption naming where they were measured."""
+    path = plot_dir / "learning_curves.png"
+    _, png = _draw(frame, source, path, "ideal")
+    caption = (f"Learning curves ({_measured_by(frame, str(source))}): E in ideal light against training windows "
+               "(log scale), one line per model, with that data's constant (mean train GT) and physical limit "
+               "(CRLB, RMS) as horizontal lines.")
+    return Plot(path, caption, png)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

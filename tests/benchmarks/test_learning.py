@@ -86,7 +86,7 @@ def test_the_table_caption_states_the_learning_curves_of_its_models(tmp_path, ca
     markdown = (tmp_path / "board" / "leaderboard.md").read_text()
     first, second = markdown.split("## Table 2", 1)
     caption = first.split("## Table 1:", 1)[1].split("\n| ", 1)[0]
-    assert "Learning curves (suite learning: 30 flights; protocol by_sequence" in caption
+    assert f"Learning curves ({learning}, suite learning at commit 0123456: 30 flights; protocol by_sequence" in caption
     assert "constant (mean train GT) 11.50 m, physical limit (CRLB, RMS) 0.30 m" in caption
     assert ("Ours (student) 14.70 m at 180 windows to 12.80 m at 1800 (best 12.80 m at 1800, 1.11 × the constant): "
             "not below the constant at any size") in caption
@@ -114,3 +114,20 @@ def test_a_learning_file_without_model_rows_is_one_line_and_exit_2(tmp_path, cap
                              "--learning", str(learning)])
     error = capsys.readouterr().err
     assert code == 2 and error.count("\n") == 1 and "no successful model rows" in error
+
+
+def test_the_first_table_plots_end_with_the_learning_curves_named_by_their_file(tmp_path):
+    from benchmarks.leaderboard import render_leaderboard
+    from tests.benchmarks.test_leaderboard import write_fixture
+
+    learning = tmp_path / "learning" / "results.csv"
+    append_rows(learning, learning_rows())
+    report = render_leaderboard(write_fixture(tmp_path / "run"), tmp_path / "board", learning=learning)
+    figure = tmp_path / "board" / "plots" / "learning_curves.png"
+    assert figure in report.plots and figure.read_bytes().startswith(b"\x89PNG")
+    table_1_plots = report.markdown.split("Plots of Table 1:", 1)[1].split("## Table 2", 1)[0]
+    assert table_1_plots.rstrip().endswith("(plots/learning_curves.png)")
+    assert f"Learning curves ({learning}, suite learning at commit 0123456)" in table_1_plots
+    plain = render_leaderboard(write_fixture(tmp_path / "run2"), tmp_path / "plain")
+    assert not any(path.name == "learning_curves.png" for path in plain.plots)
+
