@@ -156,10 +156,30 @@ def test_track_cli_on_stdin_writes_csv_and_reports(recording_path, student_weigh
     err = capsys.readouterr().err
     assert "updates" in err and "real time" in err and "torch thread" in err and "latency" in err
     table = np.loadtxt(out, delimiter=",", skiprows=1)
-    assert out.read_text().splitlines()[0] == "timestamp,x,y,z,std_x,std_y,std_z"
+    assert out.read_text().splitlines()[0] == "timestamp,x,y,z,std_x,std_y,std_z,raw_x,raw_y,raw_z"
     tracked = (table[:, 0], table[:, 1:4], table[:, 4:7])
     mean, _, offline_mean, _ = _matched(tracked, offline_track)
     assert np.abs(mean - offline_mean).max() < 1e-4  # the CSV's 6 decimals
+
+
+def test_track_csv_keeps_the_nets_positions_so_aaute_smooth_gives_its_rows_again(recording_path, student_weights,
+                                                                                 tmp_path, capsys):
+    import pandas as pd
+
+    from zoo.cli import main
+
+    track, again = tmp_path / "track.csv", tmp_path / "again.csv"
+    assert main(["track", "--weights", str(student_weights), "--audio", str(recording_path), "--out", str(track),
+                 "--lag", "0.5"]) == 0
+    rows = pd.read_csv(track)
+    assert main(["smooth", str(track), str(again), "--preset", "robust", "--lag", "0.5"]) == 0
+    smoothed = pd.read_csv(again)
+    assert np.abs(smoothed[["x", "y", "z"]].to_numpy() - rows[["x", "y", "z"]].to_numpy()).max() < 1e-4
+    assert np.abs(smoothed[["std_x", "std_y", "std_z"]].to_numpy()
+                  - rows[["std_x", "std_y", "std_z"]].to_numpy()).max() < 1e-4
+    # the raw columns are the net's positions, not the smoothed ones (a random student moves them apart)
+    assert np.abs(rows[["raw_x", "raw_y", "raw_z"]].to_numpy() - rows[["x", "y", "z"]].to_numpy()).max() > 1e-3
+    capsys.readouterr()
 
 
 def test_track_writes_an_mcap_topic(recording_path, student_weights, tmp_path, capsys):
@@ -175,7 +195,7 @@ def test_track_writes_an_mcap_topic(recording_path, student_weights, tmp_path, c
     with open(out, "rb") as handle:
         messages = [json.loads(m.data) for _, _, m in make_reader(handle).iter_messages(topics=["/track/student"])]
     assert len(messages) == 21  # 2.0 ... 4.0 s: the fixed-lag rows flushed at the end too
-    assert set(messages[0]) == {"timestamp", "x", "y", "z", "std_x", "std_y", "std_z"}
+    assert set(messages[0]) == {"timestamp", "x", "y", "z", "std_x", "std_y", "std_z", "raw_x", "raw_y", "raw_z"}
     assert all(math.isfinite(v) for m in messages for v in m.values())
 
 
@@ -341,9 +361,11 @@ def test_csv_lines_are_flushed_one_by_one():
     stream = Counting()
     writer = CsvWriter(stream)
     for k in range(3):
-        writer.write(OnlineRow(2.0 + k / 10, np.array([1.0, 2.0, 3.0]), np.array([0.1, 0.2, 0.3]), 1.0))
+        writer.write(OnlineRow(2.0 + k / 10, np.array([1.0, 2.0, 3.0]), np.array([0.1, 0.2, 0.3]), 1.0,
+                               np.array([1.5, 2.5, 3.5])))
         assert stream.flushes == k + 2 and stream.getvalue().count("\n") == k + 2  # header, then each row at once
-    assert stream.getvalue().splitlines()[1] == "2.000000,1.000000,2.000000,3.000000,0.100000,0.200000,0.300000"
+    assert stream.getvalue().splitlines()[1] == ("2.000000,1.000000,2.000000,3.000000,0.100000,0.200000,0.300000,"
+                                                 "1.500000,2.500000,3.500000")
 
 
 def _checkpoint(student_weights, path, **stored):

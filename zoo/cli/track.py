@@ -141,9 +141,10 @@ def add_command(sub: argparse._SubParsersAction) -> None:
         description="Track a drone from microphone audio: a recording (MCAP or any layout aaute reads), a WAV "
                     "file, or raw PCM on stdin ('-'). After each 0.1 s block the window ending there goes through "
                     "the model's mel recipe and net, then the causal (or fixed-lag) robust smoother; each row "
-                    "'timestamp,x,y,z,std_x,std_y,std_z' is written and flushed at once. Phase models (--config "
+                    "'timestamp,x,y,z,std_x,std_y,std_z,raw_x,raw_y,raw_z' (smoothed, its std, the net's own) is "
+                    "written and flushed at once. Phase models (--config "
                     "configs/model/srp_phat.yaml, or phase_student weights) stream the GCC-PHAT recipe, need the "
-                    "microphone positions, and add raw_x,raw_y,raw_z,detection_score,detected,state. Statistics "
+                    "microphone positions, and add detection_score,detected,state. Statistics "
                     "(latency, "
                     "speed against real time, threads) go to stderr at the end.")
     track.add_argument("--audio", required=True, help="'-' (raw PCM on stdin), a .wav file, or a recording")

@@ -6,8 +6,8 @@ PCM from a pipe). After each block, the window of ``window_seconds`` ending at t
 goes through the model's mel recipe (:class:`~datamodules.features.IncrementalMel`, each STFT frame of
 the stream computed once), the net gives a position, and :class:`~zoo.smoothing.OnlineSmoother`
 (causal at ``lag`` 0, fixed-lag otherwise) turns it into rows ``timestamp, x, y, z, std_x, std_y, std_z``
-that the writers flush one line at a time. ``batch`` > 1 runs the net on several ready windows at once
-(faster replays, later lines).
+followed by the net's own position ``raw_x, raw_y, raw_z``, that the writers flush one line at a time.
+``batch`` > 1 runs the net on several ready windows at once (faster replays, later lines).
 
 Windows end exactly where the DataModule's do: a position at ``t0 + k * hop`` uses the samples
 ``[k * block - window, k * block)``, so the positions equal ``aaute predict`` on the recording's label
@@ -47,6 +47,8 @@ from zoo.smoothing import SMOOTHED_COLUMNS, OnlineRow, OnlineSmoother
 log = logging.getLogger(__name__)
 
 HOP_SECONDS = 0.1  #: one position per 0.1 s, the 10 Hz of MMAUD's ground truth and the DataModule's labels
+#: a row: the smoothed position and its std, then the net's position (what ``aaute smooth`` reads back)
+TRACK_ROW_COLUMNS = (*SMOOTHED_COLUMNS, "raw_x", "raw_y", "raw_z")
 
 
 class TrackingError(AauteError, ValueError):
@@ -155,11 +157,11 @@ class CsvWriter:
 
     def __init__(self, stream: IO[str]):
         self.stream = stream
-        stream.write(",".join(SMOOTHED_COLUMNS) + "\n")
+        stream.write(",".join(TRACK_ROW_COLUMNS) + "\n")
         stream.flush()
 
     def write(self, row: OnlineRow) -> None:
-        values = (*row.mean, *row.std)
+        values = (*row.mean, *row.std, *row.raw)
         self.stream.write(f"{row.timestamp:.6f}," + ",".join(f"{v:.6f}" for v in values) + "\n")
         self.stream.flush()
 
@@ -168,7 +170,7 @@ class McapTrackWriter:
     """Rows as JSON messages on one MCAP topic (schema ``aaute/TrackPoint``), each written out at once."""
 
     SCHEMA = {"type": "object", "title": "aaute/TrackPoint",
-              "properties": {name: {"type": "number"} for name in SMOOTHED_COLUMNS}}
+              "properties": {name: {"type": "number"} for name in TRACK_ROW_COLUMNS}}
 
     def __init__(self, stream: IO[bytes], topic: str):
         from mcap.writer import Writer
@@ -183,7 +185,8 @@ class McapTrackWriter:
     def write(self, row: OnlineRow) -> None:
         from datamodules.recording import seconds_to_ns
 
-        values = dict(zip(SMOOTHED_COLUMNS, (row.timestamp, *map(float, row.mean), *map(float, row.std)), strict=True))
+        values = dict(zip(TRACK_ROW_COLUMNS, (row.timestamp, *map(float, (*row.mean, *row.std, *row.raw))),
+                          strict=True))
         stamp = int(seconds_to_ns(row.timestamp))
         self.writer.add_message(self.channel, stamp, json.dumps(values).encode(), stamp, self.sequence)
         self.sequence += 1

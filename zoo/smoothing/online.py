@@ -28,12 +28,14 @@ from zoo.smoothing.track import SmoothedTrack, prepare
 
 @dataclass
 class OnlineRow:
-    """One emitted position: time, mean (3,), std (3,), the frame's robust weight E[w]."""
+    """One emitted position: time, mean (3,), std (3,), the frame's robust weight E[w] and its input position
+    (3,)."""
 
     timestamp: float
     mean: np.ndarray
     std: np.ndarray
     weight: float
+    raw: np.ndarray
 
 
 class OnlineSmoother:
@@ -140,7 +142,7 @@ class OnlineSmoother:
         """Emit window frames [emitted, upto) from the current solution."""
         times, mean, var, w = self._solution  # type: ignore[misc]
         rows = [OnlineRow(float(times[k]), mean[k] + self._centre, np.sqrt(np.maximum(var[k], 0.0)) * self.scale,
-                          float(w[k])) for k in range(self._emitted, upto)]
+                          float(w[k]), self._frames[k][1] + self._centre) for k in range(self._emitted, upto)]
         self._emitted = max(self._emitted, upto)
         return rows
 
