@@ -360,8 +360,7 @@ def _section_order(key: tuple[str, str, str], first_seen: dict) -> tuple:
 
 
 def _learning_sentence(learning: pd.DataFrame | None, stats: pd.DataFrame, protocol: str, source: str) -> str:
-    """The caption's sentence on the learning curves of the table's trained models ('' without curves), read
-    from the file ``source``."""
+    """The caption's sentence on the learning curves (read from ``source``) of the table's trained models."""
     if learning is None:
         return ""
     from benchmarks.learning import learning_evidence  # matplotlib only where learning curves are given
@@ -375,8 +374,7 @@ def build_sections(frame: pd.DataFrame, learning: pd.DataFrame | None = None, le
                    ) -> tuple[list[Section], pd.DataFrame]:
     """The sections (one per suite x protocol x data fingerprint) and the failed rows no section claims.
 
-    ``learning``: a learning suite's rows (newest per job), read from the file ``learning_source``; their curves
-    are stated in the captions.
+    ``learning``: a learning suite's rows (newest per job) read from ``learning_source``, stated in the captions.
     """
     ok = frame[frame["status"] == "ok"]
     entries = ok[ok["kind"].isin(["model", "constant", "bound"])]
@@ -530,7 +528,7 @@ def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots
     frame = _select(latest(read_results(results)), results, suite)
     curves = None
     if learning is not None:
-        from benchmarks.learning import read_learning
+        from benchmarks.learning import learning_plot, read_learning
 
         curves = read_learning(Path(learning))
     sections, orphans = build_sections(frame, curves, str(learning) if learning is not None else "")
@@ -549,8 +547,6 @@ def render_leaderboard(results: Path, out: Path, suite: str | None = None, plots
             section.plots = plotter.draw(section.stats, section.number, section.protocol, RANGE_LABELS,
                                          trajectories=section is main)
         if curves is not None:
-            from benchmarks.learning import learning_plot
-
             main.plots.append(learning_plot(curves, Path(learning), out / "plots"))
     orphan_notes = [_failed_note(row) for _, row in orphans.iterrows()]
     intro = _intro(results.name, frame, sections, suite)
