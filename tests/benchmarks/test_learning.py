@@ -131,3 +131,43 @@ def test_the_first_table_plots_end_with_the_learning_curves_named_by_their_file(
     plain = render_leaderboard(write_fixture(tmp_path / "run2"), tmp_path / "plain")
     assert not any(path.name == "learning_curves.png" for path in plain.plots)
 
+
+@pytest.mark.parametrize("own_run", [False, True])
+def test_make_demo_states_this_machines_learning_curves_else_the_kept_ones(tmp_path, own_run):
+    import subprocess
+
+    out = tmp_path / "demo_out"
+    if own_run:
+        append_rows(out / "learning" / "results.csv", learning_rows())
+    dry_run = subprocess.run(["make", "-n", "demo", f"DEMO_OUT={out}"], cwd=REPO, capture_output=True, text=True,
+                             check=True).stdout
+    leaderboard = next(line for line in dry_run.splitlines() if "aaute leaderboard" in line)
+    expected = out / "learning" / "results.csv" if own_run else "results/learning.csv"
+    assert leaderboard.endswith(f"--learning {expected}")
+
+
+def test_the_kept_learning_run_is_a_clean_run_of_the_suite_and_the_readme_quotes_it():
+    """results/learning.csv (what make demo states without a run of its own): every model at three or more
+    sizes, the constant and the bound, one clean commit; the README's table gives its figures."""
+    import re
+
+    from benchmarks.learning import read_learning, reference_level
+
+    frame = read_learning(REPO / "results" / "learning.csv")
+    assert set(frame["suite"]) == {"learning"} and (frame["status"] == "ok").all()
+    assert frame["git_commit"].nunique() == 1 and not frame["git_dirty"].astype(str).eq("True").any()
+    points = curve_points(frame)
+    sizes = points.groupby("model")["flights"].nunique()
+    assert set(sizes.index) == {"student", "phase_student", "audionet", "visualnet"} and (sizes >= 3).all()
+    readme = (REPO / "README.md").read_text()
+    table = readme[readme.index("| E ideal (m) | 2 flights"):]
+    labels = {"student": "| student (mel", "audionet": "| AudioNet (mel", "phase_student": "| phase student",
+              "visualnet": "| VisualNet (256 px"}
+    for model, label in labels.items():
+        row = table[table.index(label):].splitlines()[0]
+        quoted = [float(value) for value in re.findall(r"\| (\d+\.\d\d)(?= [|/])", row)]
+        expected = points[points["model"] == model].sort_values("flights")["E"].round(2).tolist()
+        assert quoted == expected, (model, row)
+    for kind, label in (("constant", "| constant (mean train GT) |"), ("bound", "| physical limit (CRLB, RMS) |")):
+        row = table[table.index(label):].splitlines()[0]
+        assert float(row.split("|")[2]) == round(reference_level(frame, kind), 2)
