@@ -62,8 +62,9 @@ def test_no_model_rows_is_one_line_and_exit_2(tmp_path, capsys):
 
 
 def learning_rows() -> list[dict]:
-    """A learning suite's rows: the student never below the constant, AudioNet below it at one size."""
-    curve = {"student": (14.7, 13.5, 12.8), "audionet": (12.3, 11.0, 11.6), "phase_student": (10.2, 8.8, 7.8)}
+    """A learning suite's rows: the student never below the constant, AudioNet clearly below it at one size and
+    just below it (by less than the margin) at another."""
+    curve = {"student": (14.7, 13.5, 12.8), "audionet": (12.3, 10.8, 11.2), "phase_student": (10.2, 8.8, 7.8)}
     rows = [_model(model, flights, flights * 90, error) for model, errors in curve.items()
             for flights, error in zip((2, 5, 20), errors, strict=True)]
     rows += [{**_model("visualnet", flights, flights * 20, error), "E_dark": error * 0.99}  # it never sees the drone
@@ -89,11 +90,11 @@ def test_the_table_caption_states_the_learning_curves_of_its_models(tmp_path, ca
     assert f"Learning curves ({learning}, suite learning at commit 0123456: 30 flights; protocol by_sequence" in caption
     assert "constant (mean train GT) 11.50 m, physical limit (CRLB, RMS) 0.30 m" in caption
     assert ("Ours (student) 14.70 m at 180 windows to 12.80 m at 1800 (best 12.80 m at 1800, 1.11 × the constant): "
-            "not below the constant at any size") in caption
-    assert ("AudioNet 12.30 m at 180 windows to 11.60 m at 1800 (best 11.00 m at 450, 0.96 × the constant): below "
-            "the constant at 450 windows;") in caption
-    assert ("VisualNet 18.20 m at 40 windows to 12.00 m at 100 (best 12.00 m at 100, 1.04 × the constant): not "
-            "below the constant at any size, in darkness 11.88 m at 100 windows (0.99 × its E in ideal light)"
+            "at no size more than 5 % below the constant") in caption
+    assert ("AudioNet 12.30 m at 180 windows to 11.20 m at 1800 (best 10.80 m at 450, 0.94 × the constant): more "
+            "than 5 % below the constant at 450 windows;") in caption
+    assert ("VisualNet 18.20 m at 40 windows to 12.00 m at 100 (best 12.00 m at 100, 1.04 × the constant): at no "
+            "size more than 5 % below the constant, in darkness 11.88 m at 100 windows (0.99 × its E in ideal light)"
             ) in caption
     assert "AudioNet" in caption and "in darkness" not in caption.split("AudioNet", 1)[1].split(";")[0]
     assert "phase_student" not in caption  # not a row of this table
