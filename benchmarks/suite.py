@@ -27,8 +27,10 @@ fails before anything trains. The keys (all paths relative to the working direct
     models:
       - {model: student, config: configs/model/student.yaml, protocols: [by_sequence],
          args: {trainer.max_epochs: 20}, budget_note: "", method: "", tag: "",   # tag: tells apart two
-         memory_gb: 1.4}                  # entries of one model (job id <model>_<tag>-<protocol>-s<seed>);
+         memory_gb: 1.4,                  # entries of one model (job id <model>_<tag>-<protocol>-s<seed>);
                                           # memory_gb: its expected peak until a run has measured one
+         seeds: [0],                      # some of the suite's seeds only (default: all of them)
+         split: {train_flights: 5}}       # keys added to each protocol's split (--data.split) for this entry
     profile: {min_run_time: 0.5, throughput_batch: 64}   # or false
     launcher: {kind: local, parallel: 2, threads_per_job: 1, timeout_min: 120,
                memory_gb: 4, job_memory_gb: 1.5,   # local jobs' summed expected peaks (benchmarks/scheduling.py)
@@ -62,7 +64,7 @@ from datamodules.errors import AauteError
 SUITE_KEYS = {"name", "description", "out", "data", "trainer", "protocols", "lights", "seeds", "smoothing",
               "constant", "models", "profile", "launcher", "expected_runtime", "bound"}
 DATA_KEYS = {"description", "kind", "config", "root", "simulate", "label", "init_args"}
-MODEL_KEYS = {"model", "config", "protocols", "args", "budget_note", "method", "tag", "memory_gb"}
+MODEL_KEYS = {"model", "config", "protocols", "args", "budget_note", "method", "tag", "memory_gb", "seeds", "split"}
 LAUNCHER_KEYS = {"kind", "parallel", "threads_per_job", "timeout_min", "slurm", "memory_gb", "job_memory_gb"}
 LAUNCHERS = ("local", "slurm", "debug")
 CONSTANT_TARGETS = ("gt", "pseudo")
@@ -211,6 +213,13 @@ def load_suite(path: str | Path, overrides: dict[str, Any] | None = None) -> Sui
         if entry["model"] not in known:
             raise _fail(path, f"unknown model {entry['model']!r}; known models: {', '.join(known)}")
         _check_gb(path, f"model {entry['model']!r}: memory_gb", entry.get("memory_gb"))
+        own_seeds = entry.get("seeds", seeds)
+        if not isinstance(own_seeds, list) or not own_seeds or not set(own_seeds) <= set(seeds):
+            raise _fail(path, f"model {entry['model']!r}: seeds must be a non-empty list of the suite's seeds "
+                              f"{seeds}, got {own_seeds!r}")
+        if not isinstance(entry.get("split", {}), dict):
+            raise _fail(path, f"model {entry['model']!r}: split must be a mapping of split keys, got "
+                              f"{entry['split']!r}")
         for name in entry.get("protocols") or []:
             if name not in protocols:
                 raise _fail(path, f"model {entry['model']!r} names protocol {name!r}, which the suite does not "
@@ -279,7 +288,7 @@ def model_args(suite: Suite, entry: dict[str, Any], protocol: str, seed: int) ->
     raw, data = suite.raw, suite.data
     block = dict(raw["protocols"].get(protocol) or {})
     explicit = any(isinstance(block.get(name), list | str) for name in ("train", "val", "test"))
-    split = {"protocol": protocol, **({} if explicit else {"seed": seed}), **block}
+    split = {"protocol": protocol, **({} if explicit else {"seed": seed}), **block, **(entry.get("split") or {})}
     args: list[str] = []
     for config in _job_configs(raw, entry):
         args += ["--config", str(config)]
@@ -314,7 +323,8 @@ def expand_jobs(suite: Suite, data_fingerprint: str = "") -> list[JobSpec]:
     for protocol in raw["protocols"]:
         for seed in seeds:
             for entry in raw["models"]:
-                if protocol not in (entry.get("protocols") or list(raw["protocols"])):
+                if (protocol not in (entry.get("protocols") or list(raw["protocols"]))
+                        or seed not in entry.get("seeds", seeds)):
                     continue
                 name = entry["model"]
                 args = model_args(suite, entry, protocol, seed)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 
@@ -52,6 +54,27 @@ def test_two_entries_of_one_model_need_distinct_tags(tmp_path, labelled_dir):
                          models=[entry, {**entry, "tag": "small"}])
     ids = [job.job_id for job in expand_jobs(load_suite(tagged)) if job.kind == "model"]
     assert ids == ["student-by_sequence-s0", "student_small-by_sequence-s0"]
+
+
+def test_an_entry_runs_on_its_own_seeds_with_its_own_split_keys(tmp_path, labelled_dir):
+    entry = {"model": "student", "config": str(REPO / "configs/model/student.yaml")}
+    fractions = {"val": 0.3, "test": 0.3}
+    base = {"root": str(labelled_dir), "cache": str(tmp_path / "cache"), "protocols": {"by_sequence": fractions},
+            "seeds": [0, 1]}
+    suite = load_suite(write_suite(tmp_path / "suite.yaml", models=[
+        {**entry, "split": {"train_flights": 1}}, {**entry, "tag": "once", "seeds": [1]}], **base))
+    splits = {job.job_id: json.loads(job.cli_args[job.cli_args.index("--data.split") + 1])
+              for job in expand_jobs(suite) if job.kind in ("model", "constant")}
+    assert splits == {  # the split's seed is the job's; the entry's keys join the protocol's
+        "student-by_sequence-s0": {"protocol": "by_sequence", "seed": 0, **fractions, "train_flights": 1},
+        "student-by_sequence-s1": {"protocol": "by_sequence", "seed": 1, **fractions, "train_flights": 1},
+        "student_once-by_sequence-s1": {"protocol": "by_sequence", "seed": 1, **fractions},
+        "constant_gt-by_sequence-s0": {"protocol": "by_sequence", "seed": 0, **fractions},
+        "constant_gt-by_sequence-s1": {"protocol": "by_sequence", "seed": 1, **fractions}}
+    for bad, message in (({"seeds": [2]}, "seeds must be a non-empty list of the suite's seeds"),
+                         ({"split": [1]}, "split must be a mapping")):
+        with pytest.raises(SuiteError, match=rf"suite\.yaml: model 'student': {message}"):
+            load_suite(write_suite(tmp_path / "suite.yaml", models=[{**entry, **bad}], **base))
 
 
 def test_suite_errors_name_the_key(tmp_path, labelled_dir):
