@@ -24,8 +24,8 @@ from matplotlib.figure import Figure
 from benchmarks.plots import BOUND_STYLE, MARGINS, REFERENCE_STYLE, Plot, save_png
 from benchmarks.results import ResultsError, latest, read_results
 
-#: a curve is clearly below the constant where its E is lower by more than this share of it (a learning suite
-#: runs one seed per size, so there is no spread to test a difference against)
+#: a curve is clearly below the constant where its E is lower by more than this share of it (a few seeds per size
+#: give a rough spread at best, and one split alone none)
 CLEAR_MARGIN = 0.05
 
 
@@ -37,9 +37,13 @@ def curve_points(frame: pd.DataFrame, light: str = "ideal") -> pd.DataFrame:
     return points.rename(columns={"n_train_sequences": "flights", "n_train_windows": "windows"})
 
 
-def reference_level(frame: pd.DataFrame, kind: str, light: str = "ideal") -> float | None:
-    """E of the constant (mean training GT; ``kind`` 'constant') or of the physical limit ('bound'), over seeds."""
+def reference_level(frame: pd.DataFrame, kind: str, light: str = "ideal", seeds: Sequence[int] | None = None
+                    ) -> float | None:
+    """E of the constant (mean training GT; ``kind`` 'constant') or of the physical limit ('bound'), mean over
+    seeds (``seeds``: these only; a learning suite's seed is also its split's, so each has its own constant)."""
     rows = frame[(frame["kind"] == kind) & (frame["status"] == "ok")]
+    if seeds is not None:
+        rows = rows[rows["seed"].isin(list(seeds))]
     if kind == "constant":
         rows = rows[rows["method"].str.contains("GT", regex=False)]
     values = rows[f"E_{light}"].dropna()
@@ -58,7 +62,17 @@ def _windows(value: float) -> str:
     return f"{value:.0f}"
 
 
-def _model_clause(name: str, curve: pd.DataFrame, constant: float | None) -> str:
+def model_seeds(frame: pd.DataFrame) -> dict[str, tuple[int, ...]]:
+    """The seeds each model's successful rows ran on."""
+    rows = frame[(frame["kind"] == "model") & (frame["status"] == "ok")]
+    return {str(model): tuple(sorted({int(seed) for seed in group["seed"]})) for model, group in rows.groupby("model")}
+
+
+def _seed_words(seeds: Sequence[int]) -> str:
+    return f"seed{'s' if len(seeds) > 1 else ''} {', '.join(str(seed) for seed in seeds)}"
+
+
+def _model_clause(name: str, curve: pd.DataFrame, constant: float | None, constant_note: str = "") -> str:
     """One model's curve in words: E at the smallest and largest size, its best, and the sizes at which it is
     clearly below the constant (by more than :data:`CLEAR_MARGIN` of it)."""
     curve = curve.sort_values("windows")
@@ -69,7 +83,8 @@ def _model_clause(name: str, curve: pd.DataFrame, constant: float | None) -> str
         text += f" to {last['E']:.2f} m at {_windows(last['windows'])}"
     if constant is None:
         return f"{text} (best {best['E']:.2f} m at {_windows(best['windows'])})"
-    text += f" (best {best['E']:.2f} m at {_windows(best['windows'])}, {best['E'] / constant:.2f} × the constant)"
+    text += (f" (best {best['E']:.2f} m at {_windows(best['windows'])}, {best['E'] / constant:.2f} × the "
+             f"constant{constant_note})")
     below = curve[curve["E"] < (1 - CLEAR_MARGIN) * constant]
     margin = f"more than {CLEAR_MARGIN * 100:.0f} % below the constant"
     if below.empty:
@@ -122,16 +137,26 @@ def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, 
     if bound is not None:
         references.append(f"physical limit (CRLB, RMS) {bound:.2f} m")
     dark = curve_points(rows, "dark") if light == "ideal" else points.iloc[:0]
-    clauses = [_model_clause(name, points[points["model"] == model], constant)
-               + _dark_clause(points[points["model"] == model], dark[dark["model"] == model])
-               for model, name in methods.items() if model in set(points["model"])]
+    every, own = sorted(set(rows.loc[rows["kind"] == "model", "seed"].astype(int))), model_seeds(rows)
+    clauses = []
+    for model, name in methods.items():
+        if model not in set(points["model"]):
+            continue
+        # against the constant of the splits the model ran on (a learning suite's seed is its split's)
+        fewer = list(own[model]) != every
+        mine = reference_level(rows, "constant", light, own[model]) if fewer else constant
+        note = f" of its {_seed_words(own[model])}, {mine:.2f} m" if fewer and mine is not None else ""
+        clauses.append(_model_clause(name, points[points["model"] == model], mine, note)
+                       + _dark_clause(points[points["model"] == model], dark[dark["model"] == model]))
     return (f"Learning curves ({_measured_by(rows, source)}: {data}; protocol {protocol}; E under {light} light, "
-            f"{'one seed' if seeds == 1 else f'mean over up to {seeds} seeds'} per size; its own "
+            f"{'one seed' if seeds == 1 else f'mean over up to {seeds} seeds, each its own split,'} per size; its own "
             f"{', '.join(references)}): {'; '.join(clauses)}.")
 
 
-def learning_figure(points: pd.DataFrame, constant: float | None, bound: float | None, title: str) -> Figure:
-    """E against training windows (log axis), one line per model, the references as horizontal lines."""
+def learning_figure(points: pd.DataFrame, constants: Mapping[str, float], bound: float | None, title: str
+                    ) -> Figure:
+    """E against training windows (log axis), one line per model, the references as horizontal lines
+    (``constants``: label -> E of each constant drawn)."""
     figure = Figure(figsize=(7, 4.5))
     figure.subplots_adjust(**MARGINS)
     ax = figure.subplots()
@@ -139,8 +164,9 @@ def learning_figure(points: pd.DataFrame, constant: float | None, bound: float |
         curve = curve.sort_values("windows")
         ax.errorbar(curve["windows"], curve["E"], yerr=curve["std"].fillna(0.0), marker="o", capsize=3,
                     color=f"C{index % 10}", label=str(model))
-    if constant is not None:
-        ax.axhline(constant, label=f"constant (mean train GT): {constant:.2f} m", **REFERENCE_STYLE)
+    for index, (label, constant) in enumerate(constants.items()):
+        style = {**REFERENCE_STYLE, "linestyle": ("--", ":", "-.")[index % 3]}
+        ax.axhline(constant, label=f"{label}: {constant:.2f} m", **style)
     if bound is not None:
         ax.axhline(bound, label=f"physical limit (CRLB, RMS): {bound:.2f} m", **BOUND_STYLE)
     ax.set_xscale("log")
@@ -153,13 +179,25 @@ def learning_figure(points: pd.DataFrame, constant: float | None, bound: float |
     return figure
 
 
+def _constants(frame: pd.DataFrame, light: str) -> dict[str, float]:
+    """The constant's line of every set of seeds the models ran on (one line when they all ran on the same)."""
+    sets = sorted(set(model_seeds(frame).values()), key=lambda seeds: (-len(seeds), seeds))
+    lines = {}
+    for seeds in sets:
+        level = reference_level(frame, "constant", light, seeds)
+        if level is not None:
+            label = "constant (mean train GT)" + (f", {_seed_words(seeds)}" if len(sets) > 1 else "")
+            lines[label] = level
+    return lines
+
+
 def _draw(frame: pd.DataFrame, source: Path, out: Path, light: str) -> tuple[pd.DataFrame, bytes]:
     """Draw the learning curves of a learning suite's rows (newest per job) into ``out`` (PNG): their points and
     the PNG bytes."""
     points = curve_points(frame, light)
     if points.empty:
         raise ResultsError(f"{source}: no successful model rows with E under {light} light to draw")
-    figure = learning_figure(points, reference_level(frame, "constant", light), reference_level(frame, "bound", light),
+    figure = learning_figure(points, _constants(frame, light), reference_level(frame, "bound", light),
                              f"Learning curves ({', '.join(frame['suite'].dropna().unique())})")
     out.parent.mkdir(parents=True, exist_ok=True)
     return points, save_png(figure, out)

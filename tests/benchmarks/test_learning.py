@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pandas as pd
 import pytest
 
 from benchmarks.learning import curve_points, main
@@ -166,9 +167,34 @@ def test_the_kept_learning_run_is_a_clean_run_of_the_suite_and_the_readme_quotes
               "visualnet": "| VisualNet (256 px"}
     for model, label in labels.items():
         row = table[table.index(label):].splitlines()[0]
-        quoted = [float(value) for value in re.findall(r"\| (\d+\.\d\d)(?= [|/])", row)]
-        expected = points[points["model"] == model].sort_values("flights")["E"].round(2).tolist()
+        # each size's "E ± std" (several seeds) or "E" (one), ideal light first where darkness follows
+        quoted = [(float(mean), float(std) if std else None)
+                  for mean, std in re.findall(r"\| (\d+\.\d\d)(?: ± (\d+\.\d\d))?(?= [|/])", row)]
+        curve = points[points["model"] == model].sort_values("flights")
+        expected = [(round(mean, 2), round(std, 2) if seeds > 1 else None)
+                    for mean, std, seeds in zip(curve["E"], curve["std"], curve["seeds"], strict=True)]
         assert quoted == expected, (model, row)
-    for kind, label in (("constant", "| constant (mean train GT) |"), ("bound", "| physical limit (CRLB, RMS) |")):
+    for kind, label in (("constant", "| constant (mean train GT"), ("bound", "| physical limit (CRLB, RMS")):
         row = table[table.index(label):].splitlines()[0]
-        assert float(row.split("|")[2]) == round(reference_level(frame, kind), 2)
+        assert float(row.split("|")[2].split("±")[0]) == round(reference_level(frame, kind), 2)
+
+
+def test_a_model_run_on_fewer_seeds_is_held_against_the_constant_of_its_own_splits(tmp_path):
+    """Each seed of a learning suite is its own split, with its own constant: a model run on seed 0 alone is
+    compared with seed 0's constant, in the caption and as its own line in the figure."""
+    from benchmarks.learning import _constants, learning_evidence
+
+    constant = {"kind": "constant", "model": "constant", "method": "Constant (mean train GT)", "category": "reference",
+                "protocol": "by_sequence", "suite": "learning", "data": "30 flights"}
+    rows = [_model("audionet", 5, 450, error, seed=seed) for seed, error in ((0, 10.0), (1, 8.0))]
+    rows += [{**_model("visualnet", 5, 90, 12.0), "E_dark": 11.9}]
+    rows += [{**PROVENANCE, **constant, "job_id": f"constant_gt-by_sequence-s{seed}", "seed": seed, "E_ideal": level,
+              "E_dark": level} for seed, level in ((0, 12.0), (1, 8.0))]
+    frame = pd.DataFrame([{**PROVENANCE, "suite": "learning", "data": "30 flights", **row} for row in rows])
+    caption = learning_evidence(frame, "by_sequence", {"audionet": "AudioNet", "visualnet": "VisualNet"})
+    assert "mean over up to 2 seeds, each its own split, per size; its own constant (mean train GT) 10.00 m" in caption
+    assert "AudioNet 9.00 m at 450 windows (best 9.00 m at 450, 0.90 × the constant): more than 5 % below" in caption
+    assert ("VisualNet 12.00 m at 90 windows (best 12.00 m at 90, 1.00 × the constant of its seed 0, 12.00 m): at no "
+            "size more than 5 % below the constant") in caption
+    assert _constants(frame, "ideal") == {"constant (mean train GT), seeds 0, 1": 10.0,
+                                          "constant (mean train GT), seed 0": 12.0}
