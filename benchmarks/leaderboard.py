@@ -10,7 +10,8 @@ is shown but never ranked).
 One table per suite x protocol x data fingerprint, never mixed; the ``random_windows`` protocol is
 labelled leaky. Outputs: ``leaderboard.md``, ``leaderboard.csv``, ``leaderboard.tex`` (booktabs),
 one self-contained ``leaderboard.html`` and the PNG plots in ``plots/``. This module computes the
-statistics and assembles the pages; :mod:`benchmarks.tables` holds the table model and renders it.
+statistics and assembles the pages; :mod:`benchmarks.tables` holds the table model and renders it,
+:mod:`benchmarks.captions` writes each table's caption.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import base64
 import html
 import logging
 import sys
-from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pandas as pd
 
-from benchmarks.limit import bound_sentence
+from benchmarks.captions import distinct_values, learning_sentence, plain_text, table_caption
 from benchmarks.results import (
     BREAKDOWN,
     CATEGORIES,
@@ -65,12 +65,6 @@ log = logging.getLogger(__name__)
 #: Row order within a category: the paper's Table I (supervised visual, audio, audio-visual models, then the
 #: student); models not listed follow the listed ones of their category, by method name.
 PAPER_ORDER = ("visualnet", "darknet", "audionet", "voranet", "asdnet", "avped", "avfdti", "student", "srp_phat")
-PROTOCOL_NOTES = {
-    "by_sequence": "whole flights are held out (no test flight is seen in training)",
-    "time_blocks": "contiguous time blocks of each flight are held out, with a purge gap of at least one window",
-    "random_windows": ("LEAKY, the papers' protocol: random windows are held out, so test windows overlap "
-                       "training windows and the errors are optimistic; not comparable with the other protocols"),
-}
 LEAKY_TITLE = "leaky: test windows overlap training windows"
 RANGE_LABELS = {range_name(*band): f"{band[0]:g}–{band[1]:g} m" if band[1] is not None else f"{band[0]:g}+ m"
                 for band in RANGES}
@@ -78,7 +72,7 @@ LIGHT_TITLES = {"ideal": "ideal light", "dark": "darkness"}  #: group headers ab
 VALUE_KEYS = [*METRICS, "E_avg", *BREAKDOWN]  #: aggregated over seeds: <key>_mean and <key>_std
 PROFILE_KEYS = ["params_total_M", "params_used_M", "gmacs", "gflops", "latency_ms_1t", "latency_iqr_ms_1t",
                 "throughput_1t", "profile_inputs"]
-TRUE = {"true", "1", "yes", "y"}
+
 
 
 class LeaderboardError(AauteError, ValueError):
@@ -118,37 +112,11 @@ class LeaderboardReport:
         return [*self.files.values(), *self.plots]
 
 
-# ----------------------------------------------------------------------------------------------- numbers
-
-
-def _plain(value: object) -> str:
-    """A cell of results.csv as text: NaN and empty as '', whole floats without decimals."""
-    if value is None or (isinstance(value, float) and not np.isfinite(value)):
-        return ""
-    if isinstance(value, (float, np.floating)):
-        return f"{value:g}"
-    return str(value).strip()
-
-
-def _unique(rows: pd.DataFrame, column: str) -> list[str]:
-    """The distinct non-empty values of ``column`` in order of appearance."""
-    return list(dict.fromkeys(text for text in map(_plain, rows[column]) if text))
-
-
-def _span(rows: pd.DataFrame, column: str) -> str:
-    """'5' or '3–5' for a numeric column, '' when it is empty."""
-    values = rows[column].dropna()
-    if values.empty:
-        return ""
-    low, high = values.min(), values.max()
-    return f"{low:g}" if low == high else f"{low:g}–{high:g}"
-
-
 # ----------------------------------------------------------------------------------------------- statistics
 
 
 def _method_key(row: pd.Series) -> str:
-    return "|".join((row["kind"], row["model"], row["method"], _plain(row["alpha"])))
+    return "|".join((row["kind"], row["model"], row["method"], plain_text(row["alpha"])))
 
 
 def _sort_key(row: pd.Series) -> tuple:
@@ -169,7 +137,7 @@ def method_stats(rows: pd.DataFrame, profiles: pd.DataFrame) -> pd.DataFrame:
     grouped = rows.groupby("_key", sort=False)
     stats = grouped[["kind", "model", "method", "category", "alpha"]].first()
     stats["n_seeds"] = grouped.size()
-    stats["seeds"] = grouped["seed"].agg(lambda s: ", ".join(_plain(v) for v in sorted(s.dropna().unique())))
+    stats["seeds"] = grouped["seed"].agg(lambda s: ", ".join(plain_text(v) for v in sorted(s.dropna().unique())))
     stats = stats.join(grouped[VALUE_KEYS].mean().add_suffix("_mean"))
     stats = stats.join(grouped[VALUE_KEYS].std(ddof=1).add_suffix("_std"))
     first_prediction = (rows[rows["predictions_path"] != ""].sort_values("seed", kind="stable")
@@ -182,7 +150,7 @@ def method_stats(rows: pd.DataFrame, profiles: pd.DataFrame) -> pd.DataFrame:
     stats["reference"] = (stats["kind"] == "constant") | (stats["category"] == "reference")
     stats["display"] = [method or model for method, model in zip(stats["method"], stats["model"], strict=True)]
     repeated = stats["display"].duplicated(keep=False)
-    stats.loc[repeated, "display"] = [f"{name} ({model}, α={_plain(alpha) or '-'})" for name, model, alpha
+    stats.loc[repeated, "display"] = [f"{name} ({model}, α={plain_text(alpha) or '-'})" for name, model, alpha
                                       in stats.loc[repeated, ["display", "model", "alpha"]].itertuples(index=False)]
     order = sorted(stats.index, key=lambda key: _sort_key(stats.loc[key]))
     return stats.loc[order].reset_index(drop=True)
@@ -234,88 +202,9 @@ def _present(stats: pd.DataFrame, columns: list[Column]) -> list[Column]:
     return [column for column in columns if stats[f"{column.key}_mean"].notna().any()]
 
 
-def _seeds_sentence(stats: pd.DataFrame, rows: pd.DataFrame) -> str:
-    seeds = [_plain(seed) for seed in sorted(rows["seed"].dropna().unique())]
-    listed = f"Seed{'s' if len(seeds) > 1 else ''} {', '.join(seeds) or 'not recorded'}"
-    counts = Counter(stats["n_seeds"])
-    if set(counts) == {1}:
-        return f"{listed}: one run per method, so no standard deviation."
-    usual = counts.most_common(1)[0][0]
-    others = "; ".join(f"{stat.display} {stat.n_seeds}" for stat in stats.itertuples() if stat.n_seeds != usual)
-    spread = f"{usual} seed{'s' if usual > 1 else ''} per method" + (f", except {others}" if others else "")
-    return f"{listed}: mean ± sample standard deviation over seeds ({spread})."
-
-
-def _joined(rows: pd.DataFrame, column: str, empty: str = "not recorded") -> str:
-    return "; ".join(_unique(rows, column)) or empty
-
-
-def _split_counts(rows: pd.DataFrame, what: str) -> str:
-    """'6/2/2' (train/val/test) per distinct combination in ``rows``."""
-    columns = [f"n_{split}_{what}" for split in ("train", "val", "test")]
-    combos = ("/".join(_plain(value) or "?" for value in counts) for counts in rows[columns].itertuples(index=False))
-    return "; ".join(dict.fromkeys(combos))
-
-
-SMOOTHER_NAMES = {"robust": "the robust Student-t state-space smoother (preset robust)",
-                  "paper": "the paper's GP smoother (preset paper)", "tuned": "the tuned Matérn GP (preset tuned)"}
-
-
-def _smoother_sentence(rows: pd.DataFrame) -> str:
-    """Which smoother made the smoothed E of which methods ('' where no row says)."""
-    smoothed = rows[(rows["smoother"] != "") & (rows["kind"] == "model")]
-    groups = smoothed.groupby("smoother", sort=True)["method"].agg(lambda methods: ", ".join(dict.fromkeys(methods)))
-    if groups.empty:
-        return ""
-    if len(groups) == 1:
-        return f"Smoothed E: {SMOOTHER_NAMES.get(groups.index[0], f'preset {groups.index[0]}')}."
-    return "Smoothed E: " + "; ".join(f"{SMOOTHER_NAMES.get(name, f'preset {name}')} for {methods}"
-                                      for name, methods in groups.items()) + "."
-
-
-def _caption(rows: pd.DataFrame, stats: pd.DataFrame, protocol: str, learning: str = "") -> str:
-    """What a reader needs to judge the table: protocol, data, budget, compute convention, seeds, machine.
-
-    ``learning``: the sentence on the table's models' learning curves (another suite's results), if given.
-    """
-    parts = [f"Protocol {protocol}: {PROTOCOL_NOTES.get(protocol, 'not a known protocol')}."]
-    if suites := _unique(rows, "suite"):
-        parts.append(f"Suite {', '.join(suites)}.")
-    data = _joined(rows, "data", "")
-    parts.append(f"Data: {'/'.join(_unique(rows, 'data_kind')) or 'unknown'}{f' ({data})' if data else ''}, "
-                 f"fingerprint {', '.join(_unique(rows, 'data_fingerprint')) or 'not recorded'}; flights "
-                 f"train/val/test {_split_counts(rows, 'sequences')}, windows {_split_counts(rows, 'windows')}; "
-                 f"drones {_joined(rows, 'drones')}; light conditions {_joined(rows, 'lights')}.")
-    budget = [f"{label} {value}" for label, column in (
-        ("max epochs", "max_epochs"), ("train batches per epoch at most", "limit_train_batches"),
-        ("batch size", "batch_size"), ("epochs run", "epochs_run"), ("best epoch", "best_epoch"))
-        if (value := _span(rows, column))]
-    notes = _unique(rows, "budget_note")
-    parts.append(f"Training budget: {', '.join(budget) or 'not recorded'}{'; ' + '; '.join(notes) if notes else ''}.")
-    parts.append("GMACs (multiply-accumulates at batch 1; FLOPs = 2 × MACs), params and latency (median at "
-                 "batch 1, 1 thread) are profiled at each model's reference input shapes, whatever the training "
-                 "budget.")
-    parts.append(_seeds_sentence(stats, rows))
-    if smoothers := _smoother_sentence(rows):
-        parts.append(smoothers)
-    if limit := bound_sentence(rows):
-        parts.append(limit)
-    if learning:
-        parts.append(learning)
-    commit = ", ".join(value[:12] for value in _unique(rows, "git_commit")) or "not recorded"
-    dirty = " (dirty working tree)" if rows["git_dirty"].str.lower().isin(TRUE).any() else ""
-    parts.append(f"Machine: cpu {_joined(rows, 'cpu')}; gpu {_joined(rows, 'gpu', 'none')}; "
-                 f"threads {_joined(rows, 'threads')}. Commit {commit}{dirty}. "
-                 f"Software: {_joined(rows, 'versions')}.")
-    parts.append("Errors in metres: Dx, Dy, Dz mean absolute error per axis, E mean Euclidean error; "
-                 "mean E = (E ideal + E dark) / 2. Best per column in bold, second underlined, lower is better; "
-                 "the constant row does not compete.")
-    return " ".join(parts)
-
-
 def _failed_note(row: pd.Series) -> str:
     who = row["method"] or row["model"] or row["kind"]
-    seed = f", seed {_plain(row['seed'])}" if _plain(row["seed"]) else ""
+    seed = f", seed {plain_text(row['seed'])}" if plain_text(row["seed"]) else ""
     error = row["error"] or "no error recorded"
     where = f" (log: {row['log_path']})" if row["log_path"] else ""
     return f"{row['job_id']} ({row['status'] or 'no status'}) {who}{seed}: {error}{where}"
@@ -327,7 +216,7 @@ def _section_tables(number: int, title: str, rows: pd.DataFrame, stats: pd.DataF
     has_constant = (stats["kind"] == "constant").any()
     alert = "" if has_constant else ("NO CONSTANT BASELINE: this table has no constant-position row, so it cannot "
                                      "show whether the models learned anything (run the suite's constant jobs).")
-    main = Table(str(number), title, _caption(rows, stats, protocol, learning), ["method", "category"],
+    main = Table(str(number), title, table_caption(rows, stats, protocol, learning), ["method", "category"],
                  _main_columns(stats), [], alert, [_failed_note(row) for _, row in failed.iterrows()])
     main.rows = _build_rows(stats, main.columns, lambda stat: [stat["display"], stat["category"]])
     tables = [main]
@@ -357,17 +246,6 @@ def _section_order(key: tuple[str, str, str], first_seen: dict) -> tuple:
     suite, protocol, _ = key
     protocol_rank = PROTOCOLS.index(protocol) if protocol in PROTOCOLS else len(PROTOCOLS)
     return first_seen[("suite", suite)], protocol_rank, protocol, first_seen[key]
-
-
-def _learning_sentence(learning: pd.DataFrame | None, stats: pd.DataFrame, protocol: str, source: str) -> str:
-    """The caption's sentence on the learning curves (read from ``source``) of the table's trained models."""
-    if learning is None:
-        return ""
-    from benchmarks.learning import learning_evidence  # matplotlib only where learning curves are given
-
-    trained = stats[stats["kind"] == "model"]
-    methods = dict(zip(trained["model"], trained["display"], strict=True))
-    return learning_evidence(learning, protocol, methods, source=source)
 
 
 def build_sections(frame: pd.DataFrame, learning: pd.DataFrame | None = None, learning_source: str = ""
@@ -403,13 +281,13 @@ def build_sections(frame: pd.DataFrame, learning: pd.DataFrame | None = None, le
         title = f"Table {number}: protocol {protocol}"
         if protocol == "random_windows":
             title += f" ({LEAKY_TITLE})"
-        title += f", {'/'.join(_unique(rows, 'data_kind')) or 'unknown'} data"
+        title += f", {'/'.join(distinct_values(rows, 'data_kind')) or 'unknown'} data"
         if len(same_protocol) > 1:
             title += f" {fingerprint[:10] or '(no fingerprint)'}"
         if several_suites:
             title += f", suite {suite or '(none)'}"
         tables = _section_tables(number, title, rows, stats, protocol, failed[mine],
-                                 _learning_sentence(learning, stats, protocol, learning_source))
+                                 learning_sentence(learning, stats, protocol, learning_source))
         sections.append(Section(number, suite, protocol, fingerprint, rows, stats, tables))
     return sections, failed[~claimed]
 
@@ -429,7 +307,7 @@ def _csv_frame(sections: Sequence[Section]) -> pd.DataFrame:
     for section in sections:
         stats = section.stats.assign(table=section.number, suite=section.suite, protocol=section.protocol,
                                      data_fingerprint=section.fingerprint,
-                                     data_kind="/".join(_unique(section.rows, "data_kind")),
+                                     data_kind="/".join(distinct_values(section.rows, "data_kind")),
                                      method=section.stats["display"])
         frames.append(stats[leading + values + PROFILE_KEYS])
     return pd.concat(frames, ignore_index=True)
