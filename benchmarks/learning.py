@@ -137,7 +137,11 @@ def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, 
     if bound is not None:
         references.append(f"physical limit (CRLB, RMS) {bound:.2f} m")
     dark = curve_points(rows, "dark") if light == "ideal" else points.iloc[:0]
-    every, own = sorted(set(rows.loc[rows["kind"] == "model", "seed"].astype(int))), model_seeds(rows)
+    own = model_seeds(rows)
+    every = sorted({seed for seeds in own.values() for seed in seeds})
+    # each seed its own split only where the constants differ (a split fixed apart from the seed gives one constant)
+    own_splits = len({reference_level(rows, "constant", light, [seed]) for seed in every}) > 1
+    spread = "one seed" if seeds == 1 else f"mean over up to {seeds} seeds{', each its own split,' * own_splits}"
     clauses = []
     for model, name in methods.items():
         if model not in set(points["model"]):
@@ -149,7 +153,7 @@ def learning_evidence(frame: pd.DataFrame, protocol: str, methods: Mapping[str, 
         clauses.append(_model_clause(name, points[points["model"] == model], mine, note)
                        + _dark_clause(points[points["model"] == model], dark[dark["model"] == model]))
     return (f"Learning curves ({_measured_by(rows, source)}: {data}; protocol {protocol}; E under {light} light, "
-            f"{'one seed' if seeds == 1 else f'mean over up to {seeds} seeds, each its own split,'} per size; its own "
+            f"{spread} per size; its own "
             f"{', '.join(references)}): {'; '.join(clauses)}.")
 
 

@@ -198,3 +198,5 @@ def test_a_model_run_on_fewer_seeds_is_held_against_the_constant_of_its_own_spli
             "size more than 5 % below the constant") in caption
     assert _constants(frame, "ideal") == {"constant (mean train GT), seeds 0, 1": 10.0,
                                           "constant (mean train GT), seed 0": 12.0}
+    one_split = frame.assign(E_ideal=frame["E_ideal"].where(frame["kind"] != "constant", 12.0))
+    assert "mean over up to 2 seeds per size" in learning_evidence(one_split, "by_sequence", {"audionet": "AudioNet"})
