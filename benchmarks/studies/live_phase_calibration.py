@@ -8,9 +8,11 @@ errors are metres with heavy tails, not MMAUD V1's centimetres, so the ``robust`
 std far too small. A detection's noise then grows as its peak weakens: ``(reference / score) ** power``
 (the reference is the detections' median score, rounded); with ground truth, the power and a factor on the
 fitted noise are chosen on a small grid by the E at lag 1 s (the mean over the folders), among the pairs whose
-causal E is at or below the raw E in every folder. Last, with ground truth, the factor per lag (0, 0.5, 1 s
-and offline) that makes the 2-std band cover 95 % of the errors of the rows that carry a std (detected and held;
-:func:`zoo.smoothing.calibration_factor`). It prints the preset to paste into
+causal E is at or below the raw E in every folder. Last, with ground truth, the factors per lag (0, 0.5, 1 s,
+and offline for detections) that make the 2-std band cover 95 % of the errors
+(:func:`zoo.smoothing.calibration_factor`): ``std_scale`` over the detected rows, ``hold_scale`` over the held
+ones (their std is the prior's spread since the last detection, a different quantity). It prints the preset
+to paste into
 :data:`zoo.smoothing.ROBUST_PRESETS`. Use development flights only (seed 202): the held-out flights
 (seed 101) score it (:mod:`benchmarks.studies.live_phase_accuracy`).
 """
@@ -32,8 +34,8 @@ NOISE_FACTORS = (0.3, 1.0, 3.0)
 SCORE_POWERS = (0.0, 2.0, 4.0, 5.0, 6.0)
 
 
-def _gated(rows, hp, lag: float, calibrate: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """The gated online smoother's means and stds (N x 3) over one flight's raw rows."""
+def _gated(rows, hp, lag: float, calibrate: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The gated online smoother's means and stds (N x 3) over one flight's raw rows, and the rows' states."""
     from zoo.deploy.live_phase import GatedSmoothing, PhaseRow
     from zoo.smoothing import OnlineSmoother
 
@@ -42,7 +44,16 @@ def _gated(rows, hp, lag: float, calibrate: bool = False) -> tuple[np.ndarray, n
     for row in rows:
         out += gated.add(PhaseRow(row.timestamp, row.raw, row.score, row.detected, row.state))
     out += gated.flush()
-    return np.array([r.mean for r in out]), np.array([r.std for r in out])
+    return np.array([r.mean for r in out]), np.array([r.std for r in out]), np.array([r.state for r in out])
+
+
+def _factor(parts, state: str) -> float:
+    """The 2-std calibration factor over the rows in ``state`` of (mean, std, states, truth) per flight."""
+    from zoo.smoothing import calibration_factor
+
+    picked = [(mean[states == state], std[states == state], truth[states == state])
+              for mean, std, states, truth in parts]
+    return calibration_factor(*(np.concatenate([p[i] for p in picked]) for i in range(3)))
 
 
 def _errors(flights, hp, lag: float) -> dict[str, float]:
@@ -117,12 +128,13 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit("no noise factor and score power keeps the causal E at or below the raw E")
     hp = best[1]
     print(f"chosen: noise {hp.noise}, score power {hp.score_power:g} (mean E at lag 1 s {best[0]:.3f})")
-    factors = []
+    factors, holds = [], []
     for lag in LAGS:
         parts = [(*_gated(rows, hp, lag), truth) for _, rows, truth in flights]
-        factor = calibration_factor(*(np.concatenate([p[i] for p in parts]) for i in range(3)))
+        factor, hold = _factor(parts, "detected"), _factor(parts, "held")
         factors.append((lag, round(factor, 3)))
-        print(f"lag {lag:g} s: std factor {factor:.3f}", flush=True)
+        holds.append((lag, round(hold, 3)))
+        print(f"lag {lag:g} s: std factor {factor:.3f}, held rows' factor {hold:.3f}", flush=True)
     parts = []  # offline: each flight's detections smoothed alone (no scores), scored at the detections
     for _, rows, truth in flights:
         measured = np.array([r.state == "detected" for r in rows])
@@ -137,7 +149,7 @@ def main(argv: list[str] | None = None) -> None:
     ls, os_, noise = (tuple(float(f"{v:.3g}") for v in a) for a in hp.arrays())
     print(f'"srp_phat": RobustHyperparameters(\n    lengthscale={ls}, outputscale={os_}, noise={noise}, '
           f"dof={hp.dof:.3g},\n    std_scale={tuple(factors)},\n    score_power={hp.score_power:g}, "
-          f"score_reference={hp.score_reference:g},\n),".replace("inf", "OFFLINE"))
+          f"score_reference={hp.score_reference:g},\n    hold_scale={tuple(holds)},\n),".replace("inf", "OFFLINE"))
 
 if __name__ == "__main__":
     main()

@@ -205,6 +205,35 @@ def test_gated_smoothing_feeds_measurements_only_and_keeps_time_order():
     assert not np.allclose(beyond[4].mean, out[4].mean)
 
 
+def test_a_held_rows_std_is_calibrated_by_the_hold_factor_and_a_detections_by_the_std_factor():
+    """std_scale calibrates the detections' std, hold_scale the held rows' (extrapolated at lag 0, interpolated
+    with a later detection within the lag); without hold_scale the held rows take std_scale's factor."""
+    from dataclasses import replace
+
+    steps = [(0.1 * k, "detected") for k in range(1, 11)] + [(1.1, "held"), (1.2, "held"), (1.3, "detected")]
+
+    def run(hp, lag: float) -> list[PhaseRow]:
+        gated = GatedSmoothing(OnlineSmoother(hp, lag=lag))
+        out = []
+        for t, state in steps:
+            out += gated.add(PhaseRow(t, np.array([t, 10.0, 5.0]), 5.0, state == "detected", state))
+        return out + gated.flush()
+
+    plain = replace(ROBUST_PRESETS["srp_phat"], std_scale=(), hold_scale=())
+    for lag in (0.0, 0.3):
+        base = run(plain, lag)
+        scaled = run(replace(plain, std_scale=((0.0, 3.0),), hold_scale=((0.0, 7.0),)), lag)
+        fallback = run(replace(plain, std_scale=((0.0, 3.0),)), lag)
+        for b, s, f in zip(base, scaled, fallback, strict=True):
+            np.testing.assert_array_equal(s.mean, b.mean)  # the factors change stds only
+            factor = 7.0 if b.state == "held" else 3.0
+            np.testing.assert_allclose(s.std, factor * b.std, rtol=1e-12)
+            np.testing.assert_allclose(f.std, 3.0 * b.std, rtol=1e-12)
+    assert replace(plain, std_scale=((0.0, 2.0), (1.0, 4.0))).hold_scale_for(0.5) == pytest.approx(3.0)
+    with pytest.raises(ValueError, match="hold_scale needs"):
+        replace(plain, hold_scale=((0.0, -1.0),))
+
+
 def test_a_weak_detection_moves_the_smoothed_track_less_when_the_preset_scales_noise_by_score():
     """The gated smoother hands each detection's score to the smoother as a noise scale."""
     from dataclasses import replace

@@ -296,8 +296,9 @@ class GatedSmoothing:
     from the measurements up to its time plus the lag, as a measured row does); otherwise (and always at
     lag 0) it takes the latest smoothed position, its std grown by what the smoother's Matern-5/2 prior lets
     the track move in the time since (variance ``outputscale * (1 - rho(dt))`` per axis, ``rho`` the
-    prior's correlation, times the calibration factor squared). A fallback row keeps its own position with
-    std NaN.
+    prior's correlation). A held row's std, either way, is calibrated by the preset's ``hold_scale`` factor
+    (the prior's spread is not the detections' error, which ``std_scale`` calibrates). A fallback row keeps
+    its own position with std NaN.
     """
 
     def __init__(self, smoother: OnlineSmoother):
@@ -311,10 +312,10 @@ class GatedSmoothing:
         self._lengthscale, self._outputscale = lengthscale, outputscale
 
     def held_std(self, std: np.ndarray, elapsed: float) -> np.ndarray:
-        """The std of a position held ``elapsed`` seconds after the smoothed one of std ``std`` (see above)."""
+        """The std of a position held ``elapsed`` seconds after the smoothed one of (calibrated) std ``std``."""
         r = np.sqrt(5.0) * max(elapsed, 0.0) / self._lengthscale
         moved = self._outputscale * (1.0 - (1.0 + r + r * r / 3.0) * np.exp(-r))
-        return np.sqrt(std ** 2 + self.smoother.scale ** 2 * moved)
+        return self.smoother.hold_scale * np.sqrt((std / self.smoother.scale) ** 2 + moved)
 
     def _fill(self, rows: list[OnlineRow]) -> None:
         for row in rows:

@@ -58,7 +58,8 @@ class OnlineSmoother:
         preset: a name of :data:`ROBUST_PRESETS` or hyperparameters.
         lag: seconds of future each estimate may use (0: causal filter).
         iterations: variational iterations per update over the window.
-        calibrate: multiply the std by the preset's ``std_scale`` factor at this lag.
+        calibrate: multiply the std by the preset's ``std_scale`` factor at this lag (a prediction's by its
+            ``hold_scale`` factor).
         window: seconds of already emitted frames re-solved with each update besides the lag (their
             weights are revised with newer data, which steadies the state carried forward; their emitted
             rows never change). The work per frame grows with ``(lag + window)^3``.
@@ -77,6 +78,8 @@ class OnlineSmoother:
         self.lag = float(lag)
         self.iterations = int(iterations)
         self.scale = self.hyperparameters.scale_for(self.lag) if calibrate else 1.0
+        #: the factor on the std of a position with no frame at its time (:meth:`predict`)
+        self.hold_scale = self.hyperparameters.hold_scale_for(self.lag) if calibrate else 1.0
         lengthscale, outputscale, noise = self.hyperparameters.arrays()
         self._noise = noise
         # lam = sqrt(5) / lengthscale, N = F + lam I (nilpotent) and N^2 per axis, for exp(F d) in closed form
@@ -209,9 +212,9 @@ class OnlineSmoother:
         return self._frames[-1][0] if self._frames else self._t
 
     def predict(self, timestamp: float) -> tuple[np.ndarray, np.ndarray]:
-        """Posterior mean and (calibrated) std of the position at ``timestamp``, a time with no frame, given
-        every frame so far at its current weight: between frames an interpolation, after the last one the
-        prior's extrapolation.
+        """Posterior mean and std of the position at ``timestamp``, a time with no frame, given every frame so
+        far at its current weight: between frames an interpolation, after the last one the prior's
+        extrapolation. The std is calibrated by the preset's ``hold_scale``, not ``std_scale``.
 
         Raises:
             ValueError: no frame yet, or a time before the committed state (frames already folded away).
@@ -236,7 +239,7 @@ class OnlineSmoother:
             half, _ = lapack.dtrtrs(factor, cross, lower=1)
             mean[axis] = prior_mean[n, axis] + cross @ alpha
             var[axis] = cov[axis, n, n] - half @ half
-        return mean + self._centre, np.sqrt(np.maximum(var, 0.0)) * self.scale
+        return mean + self._centre, np.sqrt(np.maximum(var, 0.0)) * self.hold_scale
 
     def flush(self) -> list[OnlineRow]:
         """Emit every frame not yet emitted (with the future seen so far) and reset nothing else."""

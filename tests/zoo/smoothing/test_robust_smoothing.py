@@ -290,7 +290,7 @@ def test_predict_between_frames_is_the_exact_posterior_given_the_weights_and_noi
     batch = Batch(times - t[0], data, observed, np.r_[True, np.zeros(len(times) - 1, bool)])
     exact_mean, exact_var, _ = blocked_posterior(blocked_prior(batch, *HP.arrays()[:2]), noise)
     np.testing.assert_allclose(mean, exact_mean[len(t) - 2] + y[0], atol=1e-8)
-    np.testing.assert_allclose(std, np.sqrt(exact_var[len(t) - 2]) * online.scale, rtol=1e-6)
+    np.testing.assert_allclose(std, np.sqrt(exact_var[len(t) - 2]) * online.hold_scale, rtol=1e-6)
     with pytest.raises(ValueError, match="cannot predict"):
         OnlineSmoother(HP).predict(0.0)
 
