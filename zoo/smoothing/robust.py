@@ -154,20 +154,20 @@ ROBUST_PRESETS: dict[str, RobustHyperparameters] = {
     ),
     # srp_phat's live detections (metre-scale errors, mostly systematic: the detections agree closely with
     # each other, so the fitted noise is small and the calibration factors large): fitted on development
-    # flights only (seed 202, 5 x 60 s in default and in quiet ambient) by
+    # flights only (seed 202, 15 x 60 s in default and 15 in quiet ambient) by
     # `python -m benchmarks.studies.live_phase_calibration --data DEFAULT_DIR QUIET_DIR`: variational EM on the
-    # 3,878 detections (lengthscale, outputscale, noise, dof), then a detection's noise scaled by
-    # (5 / score)^4 (5: the detections' median score; a peak near the threshold is often a wrong one: on those
-    # flights detections scoring below 1.9 have a median squared error of 6.1 m^2, above it 0.4-1.0 m^2) and the
-    # fitted noise by 3, both chosen on the grid noise x {0.3, 1, 3}, power {0, 2, 4, 5, 6} by the E at lag 1 s
-    # (causal E at or below raw); last the std factors per lag against the truth, each for a 2-std band over
-    # 95 % of its rows' errors: std_scale over the detected rows, hold_scale over the held ones (before, one
-    # factor over both left the held rows' std 3-5x too wide: 2-std coverage 100 % default, 99 % quiet).
+    # 10,675 detections (lengthscale, outputscale, noise, dof), then a detection's noise scaled by
+    # (4 / score)^6 (4: the detections' median score, 4.46, rounded; a peak near the threshold is often a wrong
+    # one: on those flights detections scoring below 1.9 have a median squared error of 17 m^2, above it 1.0 m^2)
+    # and the fitted noise by 3, both chosen on the grid noise x {0.3, 1, 3}, power {0, 2, 4, 5, 6} by the E at
+    # lag 1 s (causal E at or below raw); last the std factors per lag against the truth, each for a 2-std band
+    # over 95 % of its rows' errors: std_scale over the detected rows, hold_scale over the held ones (one factor
+    # over both left the held rows' std 3-5x too wide).
     "srp_phat": RobustHyperparameters(
-        lengthscale=(6.03, 6.17, 5.45), outputscale=(4.13, 25.1, 13.1), noise=(0.00162, 0.00765, 0.0089), dof=0.771,
-        std_scale=((0.0, 16.424), (0.5, 29.335), (1.0, 31.128), (OFFLINE, 26.693)),
-        score_power=4.0, score_reference=5.0,
-        hold_scale=((0.0, 4.366), (0.5, 5.385), (1.0, 6.37)),
+        lengthscale=(4.84, 5.13, 4.25), outputscale=(3.57, 25.9, 14.6), noise=(0.00282, 0.0228, 0.022), dof=0.704,
+        std_scale=((0.0, 24.549), (0.5, 32.683), (1.0, 36.034), (OFFLINE, 29.328)),
+        score_power=6.0, score_reference=4.0,
+        hold_scale=((0.0, 3.719), (0.5, 5.212), (1.0, 5.611)),
     ),
 }
 
