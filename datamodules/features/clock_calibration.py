@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import logging
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -98,6 +99,7 @@ class ClockCalibrationConfig:
     jackknife_blocks: int = 5  #: blocks of the uncertainty's jackknife (0: none)
     max_residual: float = 3e-5  #: a fit whose robust residual RMS (s) is above this explains no source: refuse
     max_std: float = 3e-4  #: a fit with any offset's jackknife standard error (s) above this: refuse
+    max_drift_ppm: float = 100.0  #: a fitted drift beyond this is no audio crystal's (+-20-50 ppm): refuse
 
     def key(self) -> str:
         """A short digest of the settings (for cache keys)."""
@@ -418,6 +420,9 @@ def estimate_clock_offsets(audio: AudioStream, config: ClockCalibrationConfig = 
         result = _fit(mics, m, frames, positions, config)
     rms = result.residual_rms_s
     worst_std = float(np.nanmax(result.offsets_std_s, initial=0.0))
+    if np.any(np.abs(result.drifts_ppm) > config.max_drift_ppm):
+        raise ClockCalibrationError(f"clock calibration is unreliable (a drift beyond the plausible "
+                                    f"+-{config.max_drift_ppm:g} ppm): {result.summary()}")
     if rms > config.max_residual or worst_std > config.max_std:
         raise ClockCalibrationError(
             f"clock calibration is unreliable (residual RMS {1e6 * rms:.0f} us, limit {1e6 * config.max_residual:.0f}; "
@@ -493,6 +498,31 @@ def _sandwich(model: _Model, frames: np.ndarray, theta: np.ndarray, residuals: n
 # ------------------------------------------------------------------------------ following the clocks
 
 
+def consistent_estimates(pieces: list[tuple[float, float, ClockCalibration]], floor_s: float = 2e-5,
+                         threshold: float = 3.0, max_drift_ppm: float = 100.0) -> list[bool]:
+    """Which of three or more stretch estimates (as :func:`combine_clock_estimates` takes them) agree with one
+    line: the line through the pair of estimates (with a drift within ``max_drift_ppm``) that the most
+    estimates agree with (every node within ``threshold`` of it, in units of the estimate's std and ``floor_s``
+    in quadrature), ties to the smaller squared misfit. A stretch whose fit went wrong can be off by tenths of
+    a millisecond with a std of hundredths, so the line of all of them would follow it."""
+    if len(pieces) < 3:
+        return [True] * len(pieces)
+    centres = np.array([start + duration / 2 for start, duration, _ in pieces])
+    offsets = np.stack([estimate.offsets_at(duration / 2) for _, duration, estimate in pieces])
+    sigma = np.hypot(np.nan_to_num(np.stack([e.offsets_std_s for _, _, e in pieces]), nan=floor_s), floor_s)
+    best, keep = None, [True] * len(pieces)
+    for i, j in itertools.combinations(range(len(pieces)), 2):
+        slope = (offsets[j] - offsets[i]) / (centres[j] - centres[i])
+        if np.any(np.abs(slope) > max_drift_ppm * 1e-6):
+            continue
+        z = np.abs(offsets - offsets[i] - slope * (centres[:, None] - centres[i])) / sigma
+        agree = (z < threshold).all(axis=1)
+        rank = (int(agree.sum()), -float(np.sum(z[agree] ** 2)))
+        if best is None or rank > best:
+            best, keep = rank, agree.tolist()
+    return keep
+
+
 def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]], drift_significance: float = 3.0
                             ) -> ClockCalibration:
     """One clock model from estimates of successive stretches of a stream (how a live stream follows drift).
@@ -505,10 +535,16 @@ def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]],
     weighted mean. Two estimates suffice for a line (asking for three, so that their scatter could check
     their stds, followed the clocks worse on development flights). Standard errors come from the fit, scaled
     up by the scatter of the measurements about it when that is larger than their stds say (Birge ratio).
-    The result's times count from the stream's start.
+    From three estimates on, those that disagree with the line most of them agree with are left out
+    (:func:`consistent_estimates`). The result's times count from the stream's start.
     """
     if not pieces:
         raise ValueError("combine_clock_estimates needs at least one estimate")
+    keep = consistent_estimates(pieces)
+    if not all(keep):
+        log.info("clock estimates of the stretches from %s s disagree with the others and are left out",
+                 ", ".join(f"{start:.1f}" for (start, _, _), kept in zip(pieces, keep, strict=True) if not kept))
+        pieces = [piece for piece, kept in zip(pieces, keep, strict=True) if kept]
     if len(pieces) == 1:
         start, _, only = pieces[0]
         return dataclasses.replace(only, offsets_s=only.offsets_at(-start), times=only.times + start)

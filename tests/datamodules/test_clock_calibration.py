@@ -15,6 +15,7 @@ from datamodules.features.clock_calibration import (
     ClockCalibrationError,
     check_mode,
     combine_clock_estimates,
+    consistent_estimates,
     estimate_clock_offsets,
     wants_calibration,
 )
@@ -260,6 +261,45 @@ def test_estimates_of_successive_stretches_give_the_drift_over_their_whole_span(
     noisy = [_piece(s, d, e.offsets_at(d / 2)[1] + (3e-5 if k % 2 else -3e-5), 1e-5)
              for k, (s, d, e) in enumerate(pieces)]
     assert combine_clock_estimates(noisy).drifts_std_ppm[1] > 2 * combined.drifts_std_ppm[1]
+
+
+def test_stretch_estimates_that_disagree_with_the_line_of_the_others_are_left_out():
+    """A stretch whose fit went wrong (tenths of a millisecond off with a std of hundredths) does not bend the line;
+    with half the stretches wrong in different ways the ones that agree still win."""
+    line = 1e-3 + 20e-6 * np.arange(5, 60, 10)
+    good = [_piece(10.0 * k, 10.0, value, 1e-5) for k, value in enumerate(line)]
+    one_wrong = [*good[:1], _piece(10.0, 10.0, line[1] + 0.7e-3, 1e-5), *good[2:]]
+    assert consistent_estimates(one_wrong) == [True, False, True, True, True, True]
+    expected = combine_clock_estimates(good[:1] + good[2:])
+    np.testing.assert_allclose(combine_clock_estimates(one_wrong).offsets_at(55.0), expected.offsets_at(55.0))
+    assert combine_clock_estimates(one_wrong).drifts_ppm[1] == pytest.approx(20.0, abs=1e-6)
+    half_wrong = [good[0], _piece(10.0, 10.0, line[1] + 0.7e-3, 1e-5), good[2],
+                  _piece(30.0, 10.0, line[3] + 0.3e-3, 1e-5), good[4], _piece(50.0, 10.0, line[5] - 0.4e-3, 1e-5)]
+    assert consistent_estimates(half_wrong) == [True, False, True, False, True, False]
+    assert consistent_estimates(good) == [True] * 6
+    assert consistent_estimates(one_wrong[:2]) == [True, True]  # two cannot tell which one is wrong
+    # a line only a drift no crystal has would explain is no support
+    fast = [_piece(0.0, 10.0, 0.0, 1e-5), _piece(10.0, 10.0, 3e-3, 1e-5), _piece(20.0, 10.0, 6e-3, 1e-5)]
+    assert consistent_estimates(fast) == [True, True, True]  # no plausible pair: nothing is judged
+
+
+def test_a_fit_with_a_drift_no_crystal_has_is_refused(monkeypatch):
+    import datamodules.features.clock_calibration as calibration
+
+    frames = 20
+    measured = calibration.FrameMeasurements(np.arange(frames, dtype=float), np.full((frames, 4), 1e-3),
+                                             np.zeros((frames, 6)), np.full(frames, 10.0))
+    fitted = ClockCalibration(np.array([0.0, 1e-3, 0.0, 0.0]), np.full(4, 1e-5), np.array([0.0, 300.0, 0.0, 0.0]),
+                              np.ones(4), frames=frames, residual_rms_s=1e-5)
+    monkeypatch.setattr(calibration, "measure", lambda audio, config: measured)
+    monkeypatch.setattr(calibration, "_initial_positions", lambda mics, m, used, config: np.zeros((used.size, 3)))
+    monkeypatch.setattr(calibration, "_fit", lambda *args: fitted)
+    mics = np.array([[1.5, 1.5, 0.2], [-1.5, 1.5, 0.7], [-1.5, -1.5, 1.2], [1.5, -1.5, 1.7]])
+    audio = ArrayAudio(np.zeros((4, 48000), dtype=np.float32), 48000.0, 0.0, mics)
+    with pytest.raises(ClockCalibrationError, match="beyond the plausible"):
+        estimate_clock_offsets(audio)
+    fitted.drifts_ppm[1] = 30.0
+    assert estimate_clock_offsets(audio) is fitted
 
 
 def test_a_drift_not_told_from_zero_leaves_a_weighted_mean_and_one_estimate_is_shifted_to_the_stream():

@@ -4,10 +4,10 @@
 :class:`CalibratingPhase` keeps the stream's first ``seconds`` of audio, estimates the nodes' clock offsets
 and drifts from it (:func:`~datamodules.features.clock_calibration.estimate_clock_offsets`) in a worker
 process while the rows go on, and corrects the cross-spectra of every frame after the estimate is done; then
-it estimates again from every further ``seconds`` and corrects by the line through all its estimates, so
-drifting clocks are followed. Rows before the first estimate, and all rows while every estimate is refused
-(a log line says why), use the uncorrected time differences (the tracker marks their rows ``uncorrected``:
-:meth:`CalibratingPhase.corrected`).
+it estimates again from every further ``seconds`` and corrects by the line through its estimates (those that
+agree with each other), so drifting clocks are followed. Rows before the first estimate, and all rows while
+every estimate is refused (a log line says why), use the uncorrected time differences (the tracker marks their
+rows ``uncorrected``: :meth:`CalibratingPhase.corrected`).
 
 Why a process and not a thread: the estimate holds the interpreter lock for up to 1.4 s at a time (its
 robust fit), and a tracker thread beside it then waits that long for one update.
@@ -60,8 +60,9 @@ class CalibratingPhase(IncrementalPhase):
     ``seconds`` and corrects every later frame by them (see the module docstring).
 
     With ``follow`` (the default) it estimates again from every further ``seconds`` of the stream and
-    corrects by the line through all its estimates so far
-    (:func:`~datamodules.features.clock_calibration.combine_clock_estimates`): clocks that drift are followed,
+    corrects by the line through its estimates so far, leaving out those that disagree with the line most of
+    them agree with (:func:`~datamodules.features.clock_calibration.combine_clock_estimates`): clocks that
+    drift are followed, a stretch whose fit went wrong does not bend the line,
     and a stretch whose estimate is refused (a drone too faint to hear) leaves the correction as it was, or
     the stream uncorrected until a later stretch succeeds. Without it, one estimate from the first
     ``seconds`` serves the whole stream.
