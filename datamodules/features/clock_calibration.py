@@ -498,20 +498,26 @@ def _sandwich(model: _Model, frames: np.ndarray, theta: np.ndarray, residuals: n
 # ------------------------------------------------------------------------------ following the clocks
 
 
+#: lines are tried through the pairs of at most this many estimates, spread evenly over the stream (66 pairs)
+CONSENSUS_ESTIMATES = 12
+
+
 def consistent_estimates(pieces: list[tuple[float, float, ClockCalibration]], floor_s: float = 2e-5,
                          threshold: float = 3.0, max_drift_ppm: float = 100.0) -> list[bool]:
     """Which of three or more stretch estimates (as :func:`combine_clock_estimates` takes them) agree with one
-    line: the line through the pair of estimates (with a drift within ``max_drift_ppm``) that the most
+    line: the line through a pair of estimates (with a drift within ``max_drift_ppm``) that the most
     estimates agree with (every node within ``threshold`` of it, in units of the estimate's std and ``floor_s``
-    in quadrature), ties to the smaller squared misfit. A stretch whose fit went wrong can be off by tenths of
-    a millisecond with a std of hundredths, so the line of all of them would follow it."""
+    in quadrature), ties to the smaller squared misfit; the pairs are those of :data:`CONSENSUS_ESTIMATES`
+    estimates spread over the stream (all of them in a stream of as many). A stretch whose fit went wrong can
+    be off by tenths of a millisecond with a std of hundredths, so the line of all of them would follow it."""
     if len(pieces) < 3:
         return [True] * len(pieces)
+    tried = np.unique(np.linspace(0, len(pieces) - 1, min(len(pieces), CONSENSUS_ESTIMATES)).round().astype(int))
     centres = np.array([start + duration / 2 for start, duration, _ in pieces])
     offsets = np.stack([estimate.offsets_at(duration / 2) for _, duration, estimate in pieces])
     sigma = np.hypot(np.nan_to_num(np.stack([e.offsets_std_s for _, _, e in pieces]), nan=floor_s), floor_s)
     best, keep = None, [True] * len(pieces)
-    for i, j in itertools.combinations(range(len(pieces)), 2):
+    for i, j in itertools.combinations(tried, 2):
         slope = (offsets[j] - offsets[i]) / (centres[j] - centres[i])
         if np.any(np.abs(slope) > max_drift_ppm * 1e-6):
             continue

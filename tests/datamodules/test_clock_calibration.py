@@ -281,6 +281,12 @@ def test_stretch_estimates_that_disagree_with_the_line_of_the_others_are_left_ou
     # a line only a drift no crystal has would explain is no support
     fast = [_piece(0.0, 10.0, 0.0, 1e-5), _piece(10.0, 10.0, 3e-3, 1e-5), _piece(20.0, 10.0, 6e-3, 1e-5)]
     assert consistent_estimates(fast) == [True, True, True]  # no plausible pair: nothing is judged
+    # an hour of 10 s stretches: lines through pairs of a few of them, spread over the stream
+    hour = [_piece(10.0 * k, 10.0, 1e-3 + 20e-6 * (10.0 * k + 5), 1e-5) for k in range(360)]
+    wrong = {7, 100, 101, 250, 359}
+    hour = [_piece(s, d, e.offsets_at(d / 2)[1] + 0.5e-3, 1e-5) if k in wrong else (s, d, e)
+            for k, (s, d, e) in enumerate(hour)]
+    assert [k for k, kept in enumerate(consistent_estimates(hour)) if not kept] == sorted(wrong)
 
 
 def test_a_fit_with_a_drift_no_crystal_has_is_refused(monkeypatch):
