@@ -173,6 +173,10 @@ def flight(name: str, shared: Path, clocks: Path, seconds: list[float]) -> tuple
         around = np.abs(live.times - t0 - s) <= 0.05 + 1e-9
         row.update(compute_median_ms=1e3 * float(np.median(compute)), worst_queued_s=float(queued.max()),
                    stalled_s=HOP * float((queued > STALLED).sum()), update_at_s_ms=1e3 * float(compute[around].max()))
+        stream = errors(live, gt.timestamps, gt.xyz)[0] & (live.times - t0 >= s)  # every row from S on
+        for column, other in (("calibrated", live), ("once", once), *runs.items()):
+            row[f"E_stream_{column}"] = float(errors(other, gt.timestamps, gt.xyz)[1][stream].mean())
+        row["stream_rows"] = int(stream.sum())
         if front.calibration is None:
             row["status"] = "refused"
             e_rows.append(row)
@@ -233,11 +237,13 @@ def markdown(frame: pd.DataFrame, columns: dict[str, str]) -> str:
 def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
     """Pooled per condition and ``S``: flights calibrated, E (raw) on the rows after it on each clock setting
     (over the calibrated flights) and the share of those rows ``srp_phat`` detected the drone in, offset errors and
-    their std, estimate CPU and the queued stall."""
+    their std, E (raw) over every row from ``S`` on of every flight, calibrated or not (what a stricter or looser
+    refusal trades), estimate CPU and the queued stall."""
     lines = ["| condition | S | calibrated: once / followed | E shared / uncalibrated / once / followed (raw, m) | "
              "smoothed (m) | raw, from S + 10 s (m) | rows detected: shared / once / followed | "
              "offset error at S: median / max (ms) | largest after S: once / followed (ms) | within 1 / 2 std | "
-             "estimate CPU (s) | worst queued latency (s) |", "|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
+             "every flight from S: shared / uncalibrated / once / followed (raw, m) | "
+             "estimate CPU (s) | worst queued latency (s) |", "|:--|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|--:|"]
     for (condition, s), group in e_frame.groupby(["condition", "clock_seconds"], sort=False):
         ok = group[group.status == "ok"]
         nodes = o_frame[(o_frame.condition == condition) & (o_frame.clock_seconds == s)] if len(o_frame) else o_frame
@@ -248,6 +254,9 @@ def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
             keep = (w > 0) & np.isfinite(values)  # a flight calibrated at its very end has no rows after it
             return float(np.average(values[keep], weights=w[keep])) if keep.any() else float("nan")
 
+        every = group.stream_rows.to_numpy(dtype=float)
+        stream = " / ".join(f"{np.average(group[f'E_stream_{c}'].to_numpy(dtype=float), weights=every):.2f}"
+                            for c in ("shared", "uncalibrated", "once", "calibrated"))
         if len(nodes):
             z = (nodes.error_ms / nodes.std_ms).abs()
             offsets = (f"{nodes.error_ms.abs().median():.3f} / {nodes.error_ms.abs().max():.3f} | "
@@ -264,7 +273,7 @@ def summary(e_frame: pd.DataFrame, o_frame: pd.DataFrame) -> str:
                      f"{pooled('E_settled_shared'):.2f} / {pooled('E_settled_uncalibrated'):.2f} / "
                      f"{pooled('E_settled_once'):.2f} / {pooled('E_settled_calibrated'):.2f} | "
                      f"{pooled('detected_shared'):.0%} / {pooled('detected_once'):.0%} / "
-                     f"{pooled('detected_calibrated'):.0%} | {offsets} | "
+                     f"{pooled('detected_calibrated'):.0%} | {offsets} | {stream} | "
                      f"{group.estimate_cpu_s.median():.1f} ({group.estimate_cpu_s.min():.1f}-"
                      f"{group.estimate_cpu_s.max():.1f}) | {group.worst_queued_s.max():.1f} |")
     return "\n".join(lines)

@@ -49,22 +49,29 @@ def test_offset_errors_are_taken_from_where_the_correction_starts():
 
 def test_summary_pools_the_calibrated_flights_and_counts_the_refused():
     base = {"condition": "default", "clock_seconds": 30.0, "estimate_cpu_s": 5.0, "worst_queued_s": 5.2}
+
+    def stream(shared: float, uncalibrated: float, once: float, followed: float, rows: int) -> dict[str, float]:
+        return {"E_stream_shared": shared, "E_stream_uncalibrated": uncalibrated, "E_stream_once": once,
+                "E_stream_calibrated": followed, "stream_rows": rows}
+
     e = pd.DataFrame([
         {**base, "status": "ok", "once_calibrated": True, "rows": 100, "E_raw_shared": 2.0,
          "E_raw_uncalibrated": 10.0, "E_raw_once": 3.0, "E_raw_calibrated": 2.5,
          "E_smooth_shared": 1.5, "E_smooth_uncalibrated": 9.0, "E_smooth_once": 2.5, "E_smooth_calibrated": 2.0,
          "E_settled_shared": 1.0, "E_settled_uncalibrated": 8.0, "E_settled_once": 1.4, "E_settled_calibrated": 1.0,
-         "detected_shared": 1.0, "detected_once": 0.6, "detected_calibrated": 0.8},
+         "detected_shared": 1.0, "detected_once": 0.6, "detected_calibrated": 0.8, **stream(2.0, 10.0, 3.0, 2.0, 300)},
         {**base, "status": "ok", "once_calibrated": False, "rows": 300, "E_raw_shared": 4.0,
          "E_raw_uncalibrated": 14.0, "E_raw_once": 14.0, "E_raw_calibrated": 4.5,
          "E_smooth_shared": 3.5, "E_smooth_uncalibrated": 13.0, "E_smooth_once": 13.0, "E_smooth_calibrated": 4.0,
          "E_settled_shared": 3.0, "E_settled_uncalibrated": 12.0, "E_settled_once": 12.0,
-         "E_settled_calibrated": 3.4, "detected_shared": 0.8, "detected_once": 0.0, "detected_calibrated": 0.6},
-        {**base, "status": "refused"}])
+         "E_settled_calibrated": 3.4, "detected_shared": 0.8, "detected_once": 0.0, "detected_calibrated": 0.6,
+         **stream(4.0, 14.0, 14.0, 5.0, 300)},
+        {**base, "status": "refused", **stream(6.0, 12.0, 8.0, 8.0, 600)}])
     o = pd.DataFrame([{"condition": "default", "clock_seconds": 30.0, "error_ms": err, "std_ms": 0.01,
                        "max_error_ms": abs(err) + 0.01, "max_error_once_ms": abs(err) + 0.1}
                       for err in (0.005, -0.015, 0.03)])
     line = summary(e, o).splitlines()[2]
     assert line.startswith("| default | 30 | 1 / 2 of 3 | 3.50 / 13.00 / 11.25 / 4.00 | 3.00 / 12.00 / 10.38 / 3.50 | "
                            "2.50 / 11.00 / 9.35 / 2.80 | 85% / 15% / 65% | 0.015 / 0.030 |")
-    assert "| 0.130 / 0.040 | 33% / 67% |" in line
+    # every flight from S, the refused one too (it falls back), pooled by rows
+    assert "| 0.130 / 0.040 | 33% / 67% | 4.50 / 12.00 / 8.25 / 5.75 |" in line
