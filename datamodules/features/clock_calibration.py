@@ -18,9 +18,9 @@ offset touches it. Per frame this estimator measures
 then fits one source position per frame and the offsets shared by all frames (node 0 = 0; optionally
 a drift per node) by robust least squares (:func:`scipy.optimize.least_squares`, soft-L1 loss). The
 uncertainty is the cluster-robust sandwich of that fit over 2 s clusters of frames (the first-order
-delete-a-cluster jackknife); refits leaving out blocks of frames (``uncertainty="jackknife"``) start from the
-solution and stop at their iteration limit before they have moved as far as they would, so their spread is
-too small.
+delete-a-cluster jackknife) with a floor in quadrature, the error that no spread over the frames shows;
+refits leaving out blocks of frames (``uncertainty="jackknife"``) start from the solution and stop at their
+iteration limit before they have moved as far as they would, so their spread is too small.
 
 Convention (as the simulator's ``clocks_truth``): node ``n``'s sample ``k`` is taken at true time
 ``k / fs * (1 + drift_n) + offset_n``, so its audio shows a sound ``offset_n + drift_n * t`` seconds
@@ -84,6 +84,11 @@ class ClockCalibrationConfig:
     speed_of_sound: float = SPEED_OF_SOUND
     ground_height: float = 0.0  #: z of the reflecting roof in the rig frame (m)
     sigma: float = 2e-5  #: scale of a measurement's error (s): residuals are divided by it
+    #: error of an offset (s) that no spread over the frames shows, added in quadrature to its std: with it 69-86 %
+    #: of the offsets of 10 s and 30 s stretches of development flights fall within 1 std and 83-100 % within 2
+    #: (45-67 % and 69-94 % without; seed 202, 15 flights in default and in quiet ambient), and 82-83 / 94-96 % of
+    #: the offsets of whole 60 s flights (42-44 / 76-89 % without)
+    std_floor: float = 2e-5
     loss_scale: float = 3.0  #: soft-L1 knee, in units of ``sigma``
     min_peak: float = 4.0  #: blocks whose multipath score (mean over pairs, in units of the correlation's
     #: robust spread) is below: no coherent source
@@ -447,7 +452,8 @@ def _fit(mics: np.ndarray, m: FrameMeasurements, frames: np.ndarray, positions: 
     rms = float(1.4826 * np.median(np.abs(residual - np.median(residual))))
     drifts = np.concatenate([[0.0], theta[n:2 * n]]) if config.fit_drift else np.zeros(n + 1)
     drift_std = np.concatenate([[0.0], std[n:2 * n]]) if config.fit_drift else np.zeros(n + 1)
-    return ClockCalibration(np.concatenate([[0.0], theta[:n]]), np.concatenate([[0.0], std[:n]]), drifts, drift_std,
+    offsets_std = np.concatenate([[0.0], np.hypot(std[:n], config.std_floor)])
+    return ClockCalibration(np.concatenate([[0.0], theta[:n]]), offsets_std, drifts, drift_std,
                             int(frames.size), rms, theta[model.clock_params:].reshape(-1, 3), m.times[frames])
 
 
@@ -502,20 +508,22 @@ def _sandwich(model: _Model, frames: np.ndarray, theta: np.ndarray, residuals: n
 CONSENSUS_ESTIMATES = 12
 
 
-def consistent_estimates(pieces: list[tuple[float, float, ClockCalibration]], floor_s: float = 2e-5,
-                         threshold: float = 3.0, max_drift_ppm: float = 100.0) -> list[bool]:
+def consistent_estimates(pieces: list[tuple[float, float, ClockCalibration]], threshold: float = 3.0,
+                         max_drift_ppm: float = 100.0) -> list[bool]:
     """Which of three or more stretch estimates (as :func:`combine_clock_estimates` takes them) agree with one
     line: the line through a pair of estimates (with a drift within ``max_drift_ppm``) that the most
-    estimates agree with (every node within ``threshold`` of it, in units of the estimate's std and ``floor_s``
-    in quadrature), ties to the smaller squared misfit; the pairs are those of :data:`CONSENSUS_ESTIMATES`
-    estimates spread over the stream (all of them in a stream of as many). A stretch whose fit went wrong can
-    be off by tenths of a millisecond with a std of hundredths, so the line of all of them would follow it."""
+    estimates agree with (every node within ``threshold`` of it, in units of the estimate's std, which holds
+    the estimator's ``std_floor``), ties to the smaller squared misfit; the pairs are those of
+    :data:`CONSENSUS_ESTIMATES` estimates spread over the stream (all of them in a stream of as many). A stretch
+    whose fit went wrong can be off by tenths of a millisecond with a std of hundredths, so the line of all of
+    them would follow it."""
     if len(pieces) < 3:
         return [True] * len(pieces)
     tried = np.unique(np.linspace(0, len(pieces) - 1, min(len(pieces), CONSENSUS_ESTIMATES)).round().astype(int))
     centres = np.array([start + duration / 2 for start, duration, _ in pieces])
-    offsets = np.stack([estimate.offsets_at(duration / 2) for _, duration, estimate in pieces])
-    sigma = np.hypot(np.nan_to_num(np.stack([e.offsets_std_s for _, _, e in pieces]), nan=floor_s), floor_s)
+    offsets = np.stack([estimate.offsets_at(duration / 2) for _, duration, estimate in pieces])[:, 1:]
+    stds = np.stack([estimate.offsets_std_s for _, _, estimate in pieces])[:, 1:]  # node 0 is the reference
+    sigma = np.where(np.isfinite(stds) & (stds > 0), stds, ClockCalibrationConfig.std_floor)  # unknown: the floor
     best, keep = None, [True] * len(pieces)
     for i, j in itertools.combinations(tried, 2):
         slope = (offsets[j] - offsets[i]) / (centres[j] - centres[i])

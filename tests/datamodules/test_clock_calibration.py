@@ -242,6 +242,19 @@ def test_the_sandwich_std_matches_the_spread_of_repeated_fits():
     assert np.abs(np.mean(estimates, axis=0) - offsets[1:]).max() < 3 * spread.max()
 
 
+def test_the_offsets_std_holds_the_floor_no_spread_over_the_frames_shows():
+    from datamodules.features.clock_calibration import _fit
+
+    mics, measured, source = _synthetic(np.random.default_rng(3), np.array([0.0, 3e-4, -2e-4, 1e-4]), 5e-6)
+    frames = np.arange(source.shape[0])
+    config = dataclasses.replace(CONFIG, fit_drift=False)
+    spread = _fit(mics, measured, frames, source, dataclasses.replace(config, std_floor=0.0)).offsets_std_s
+    reported = _fit(mics, measured, frames, source, config).offsets_std_s
+    assert reported[0] == 0.0 and spread[0] == 0.0  # node 0 is the reference
+    assert np.all(spread[1:] < config.std_floor)  # 5 us of noise over the frames: the floor dominates
+    assert reported[1:] == pytest.approx(np.hypot(spread[1:], config.std_floor))
+
+
 def _piece(start: float, duration: float, offset_at_centre: float, std: float, drift_ppm: float = 0.0):
     """One stretch's estimate (two nodes) whose node-1 offset at the stretch's centre is ``offset_at_centre``."""
     offset = offset_at_centre - drift_ppm * 1e-6 * duration / 2
