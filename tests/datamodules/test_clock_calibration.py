@@ -326,9 +326,14 @@ def test_a_drift_not_told_from_zero_leaves_a_weighted_mean_and_one_estimate_is_s
     combined = combine_clock_estimates(pieces)
     assert combined.drifts_ppm[1] == 0.0
     assert combined.offsets_s[1] == pytest.approx((1.00e-3 * 4 + 1.01e-3 + 0.99e-3 * 4) / 9)  # weights 1 / std^2
+    # the fits' own spread weights them; the std reported holds the estimator's floor as well
+    floor = ClockCalibrationConfig.std_floor
+    assert combined.offsets_std_s[0] == 0.0
+    assert combined.offsets_std_s[1] == pytest.approx(np.hypot(1e-5 / 9 ** 0.5 * 2, floor))
     start, duration, only = _piece(20.0, 10.0, 1e-3, 1e-5, drift_ppm=5.0)
     alone = combine_clock_estimates([(start, duration, only)])
     assert alone.offsets_at(27.0)[1] == pytest.approx(only.offsets_at(7.0)[1])
+    assert alone.offsets_std_s[1] == pytest.approx(np.hypot(1e-5, floor))
     # two estimates far apart for their stds: a line through both
     two = combine_clock_estimates([_piece(0.0, 10.0, 1.0e-3, 1e-5), _piece(10.0, 10.0, 1.2e-3, 1e-5)])
     assert two.drifts_ppm[1] == pytest.approx(20.0) and two.offsets_at(5.0)[1] == pytest.approx(1.0e-3)

@@ -27,6 +27,7 @@ import torch
 from datamodules.features import IncrementalPhase, PhaseRecipe
 from datamodules.features.clock_calibration import (
     ClockCalibration,
+    ClockCalibrationConfig,
     ClockCalibrationError,
     combine_clock_estimates,
     estimate_clock_offsets,
@@ -43,8 +44,8 @@ def estimate_stretch(samples: np.ndarray, sample_rate: float, mics: np.ndarray) 
 
     wall, cpu = time.perf_counter(), time.thread_time()
     try:
-        result: ClockCalibration | ClockCalibrationError = estimate_clock_offsets(
-            ArrayAudio(samples, sample_rate, 0.0, mics))
+        result: ClockCalibration | ClockCalibrationError = estimate_clock_offsets(  # the line adds the floor
+            ArrayAudio(samples, sample_rate, 0.0, mics), ClockCalibrationConfig(std_floor=0.0))
     except ClockCalibrationError as error:
         result = error
     return result, time.perf_counter() - wall, time.thread_time() - cpu
