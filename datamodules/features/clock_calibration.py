@@ -84,10 +84,8 @@ class ClockCalibrationConfig:
     speed_of_sound: float = SPEED_OF_SOUND
     ground_height: float = 0.0  #: z of the reflecting roof in the rig frame (m)
     sigma: float = 2e-5  #: scale of a measurement's error (s): residuals are divided by it
-    #: error of an offset (s) that no spread over the frames shows, added in quadrature to its std: with it 69-86 %
-    #: of the offsets of 10 s and 30 s stretches of development flights fall within 1 std and 83-100 % within 2
-    #: (45-67 % and 69-94 % without; seed 202, 15 flights in default and in quiet ambient), and 82-83 / 94-96 % of
-    #: the offsets of whole 60 s flights (42-44 / 76-89 % without)
+    #: error of an offset (s) that no spread over the frames shows, added in quadrature to its std (dev flights:
+    #: within 1 / 2 std 69-86 / 83-100 % of 10 s and 30 s stretch offsets, 45-67 / 69-94 % without; README)
     std_floor: float = 2e-5
     loss_scale: float = 3.0  #: soft-L1 knee, in units of ``sigma``
     min_peak: float = 4.0  #: blocks whose multipath score (mean over pairs, in units of the correlation's
@@ -549,9 +547,8 @@ def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]],
     Each piece is ``(start, duration, estimate)``: the stretch's first sample and length (s of the stream) and
     the estimate from that stretch alone (its times count from the stretch's first sample), made without the
     estimator's floor (``std_floor=0``). Per node, the offset each estimate gives at its stretch's centre is one
-    measurement, weighted by the inverse variance of its fit's own spread (weighting by the std with the floor
-    followed the clocks worse: development flights, seed 202, default ambient, 10 s stretches, E 6.56 against
-    6.49 m); ``floor_s`` is added in quadrature to the result's offset stds, which are reported;
+    measurement, weighted by the inverse variance of its fit's own spread (weights with the floor followed the
+    clocks worse on development flights); ``floor_s`` is added in quadrature to the result's offset stds;
     a straight line through them (offset and drift, by weighted least squares) is kept when the drift of one
     node is told from zero (``drift_significance`` standard errors, the estimator's own rule), else their
     weighted mean. Two estimates suffice for a line (asking for three, so that their scatter could check
@@ -569,8 +566,8 @@ def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]],
         pieces = [piece for piece, kept in zip(pieces, keep, strict=True) if kept]
     if len(pieces) == 1:
         start, _, only = pieces[0]
-        return dataclasses.replace(only, offsets_s=only.offsets_at(-start), offsets_std_s=_with_floor(
-            only.offsets_std_s, floor_s), times=only.times + start)
+        std = _with_floor(only.offsets_std_s, floor_s)
+        return dataclasses.replace(only, offsets_s=only.offsets_at(-start), offsets_std_s=std, times=only.times + start)
     centres = np.array([start + duration / 2 for start, duration, _ in pieces])
     offsets = np.stack([estimate.offsets_at(duration / 2) for _, duration, estimate in pieces])  # K x nodes
     stds = np.stack([estimate.offsets_std_s for _, _, estimate in pieces])
@@ -598,6 +595,6 @@ def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]],
         params, errors = np.pad(mean, ((0, 0), (0, 1))), np.pad(mean_errors, ((0, 0), (0, 1)))
     last = pieces[-1][2]
     return ClockCalibration(offsets_s=params[:, 0], offsets_std_s=_with_floor(errors[:, 0], floor_s),
-                            drifts_ppm=params[:, 1] * 1e6,
-                            drifts_std_ppm=errors[:, 1] * 1e6, frames=sum(e.frames for _, _, e in pieces),
+                            drifts_ppm=params[:, 1] * 1e6, drifts_std_ppm=errors[:, 1] * 1e6,
+                            frames=sum(e.frames for _, _, e in pieces),
                             residual_rms_s=last.residual_rms_s)
