@@ -512,7 +512,8 @@ CONSENSUS_ESTIMATES = 12
 
 
 def consistent_estimates(pieces: list[tuple[float, float, ClockCalibration]], threshold: float = 3.0,
-                         max_drift_ppm: float = 100.0, floor_s: float = ClockCalibrationConfig.std_floor) -> list[bool]:
+                         max_drift_ppm: float = ClockCalibrationConfig.max_drift_ppm,
+                         floor_s: float = ClockCalibrationConfig.std_floor) -> list[bool]:
     """Which of three or more stretch estimates (as :func:`combine_clock_estimates` takes them) agree with one
     line: the line through a pair of estimates (with a drift within ``max_drift_ppm``) that the most
     estimates agree with (every node within ``threshold`` of it, in units of the estimate's std and ``floor_s``
@@ -553,10 +554,9 @@ def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]],
     node is told from zero (``drift_significance`` standard errors, the estimator's own rule), else their
     weighted mean. Two estimates suffice for a line (asking for three, so that their scatter could check
     their stds, followed the clocks worse on development flights). Standard errors come from the fit, scaled
-    up by the scatter of the measurements about it when that is larger than their stds say (Birge ratio).
-    From three estimates on, those that disagree with the line most of them agree with are left out
-    (:func:`consistent_estimates`). The result's times count from the stream's start.
-    """
+    up by the scatter of the measurements about it when that is larger than their stds say (Birge ratio). From
+    three estimates on, those that disagree with the line most agree with are left out (:func:`consistent_estimates`).
+    The result's times count from the stream's start."""
     if not pieces:
         raise ValueError("combine_clock_estimates needs at least one estimate")
     keep = consistent_estimates(pieces, floor_s=floor_s)
