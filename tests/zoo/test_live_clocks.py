@@ -53,7 +53,7 @@ def test_estimates_from_every_stretch_follow_a_drifting_clock(drifting, caplog):
     truth = OFFSETS + DRIFTS * 1e-6 * 11.0  # near the end of the stream
     followed_error = np.abs(followed.calibration.offsets_at(11.0) - truth).max()
     once_error = np.abs(once.calibration.offsets_at(11.0) - truth).max()
-    assert followed_error < 5e-5 < once_error
+    assert followed_error < 2e-5 < once_error  # one 4 s stretch fits the drift too, less exactly
     assert followed.calibration.drifts_ppm[1] == pytest.approx(40.0, abs=8.0)
     # the frames after the last estimate are corrected by the combined clocks
     assert followed.clocks is followed.calibration

@@ -29,9 +29,9 @@ from datamodules.features.clock_calibration import (
     ClockCalibration,
     ClockCalibrationConfig,
     ClockCalibrationError,
-    combine_clock_estimates,
     estimate_clock_offsets,
 )
+from datamodules.features.clock_following import combine_clock_estimates
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +62,7 @@ class CalibratingPhase(IncrementalPhase):
 
     With ``follow`` (the default) it estimates again from every further ``seconds`` of the stream and
     corrects by the line through its estimates so far, leaving out those that disagree with the line most of
-    them agree with (:func:`~datamodules.features.clock_calibration.combine_clock_estimates`): clocks that
+    them agree with (:func:`~datamodules.features.clock_following.combine_clock_estimates`): clocks that
     drift are followed, a stretch whose fit went wrong does not bend the line,
     and a stretch whose estimate is refused (a drone too faint to hear) leaves the correction as it was, or
     the stream uncorrected until a later stretch succeeds. Without it, one estimate from the first
