@@ -59,9 +59,9 @@ def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]],
     measurement, weighted by the inverse variance of its fit's own spread (weights with the floor followed the
     clocks worse on development flights); ``floor_s`` is added in quadrature to the result's offset stds;
     a straight line through them (offset and drift, by weighted least squares) is kept when the drift of one
-    node is told from zero (``drift_significance`` standard errors, the estimator's own rule), else their
-    weighted mean. Two estimates suffice for a line (asking for three, so that their scatter could check
-    their stds, followed the clocks worse on development flights). Standard errors come from the fit, scaled
+    node is told from zero (``drift_significance`` standard errors, the estimator's rule under
+    ``fit_drift=None``), else their weighted mean. Two estimates suffice for a line (asking for three, so that
+    their scatter could check their stds, followed the clocks worse on development flights). Standard errors come from the fit, scaled
     up by the scatter of the measurements about it when that is larger than their stds say (Birge ratio). From
     three estimates on, those that disagree with the line most agree with are left out (:func:`consistent_estimates`).
     The result's times count from the stream's start."""
