@@ -61,10 +61,10 @@ def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]],
     a straight line through them (offset and drift, by weighted least squares) is kept when the drift of one
     node is told from zero (``drift_significance`` standard errors, the estimator's rule under
     ``fit_drift=None``), else their weighted mean. Two estimates suffice for a line (asking for three, so that
-    their scatter could check their stds, followed the clocks worse on development flights). Standard errors come from the fit, scaled
-    up by the scatter of the measurements about it when that is larger than their stds say (Birge ratio). From
-    three estimates on, those that disagree with the line most agree with are left out (:func:`consistent_estimates`).
-    The result's times count from the stream's start."""
+    their scatter could check their stds, followed the clocks worse on development flights). Standard errors
+    come from the fit, scaled up by the scatter of the measurements about it when that is larger than their
+    stds say (Birge ratio). From three estimates on, those that disagree with the line most agree with are left
+    out (:func:`consistent_estimates`). The result's times count from the stream's start."""
     if not pieces:
         raise ValueError("combine_clock_estimates needs at least one estimate")
     keep = consistent_estimates(pieces, floor_s=floor_s)
