@@ -19,6 +19,14 @@ log = logging.getLogger(__name__)
 CONSENSUS_ESTIMATES = 12
 
 
+def _at_centres(pieces: list[tuple[float, float, ClockCalibration]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each stretch's centre (s of the stream), and its estimate's offsets and their stds there (K x nodes)."""
+    centres = np.array([start + duration / 2 for start, duration, _ in pieces])
+    offsets = np.stack([estimate.offsets_at(duration / 2) for _, duration, estimate in pieces])
+    stds = np.stack([estimate.offsets_std_s for _, _, estimate in pieces])
+    return centres, offsets, stds
+
+
 def consistent_estimates(pieces: list[tuple[float, float, ClockCalibration]], threshold: float = 3.0,
                          max_drift_ppm: float = ClockCalibrationConfig.max_drift_ppm,
                          floor_s: float = ClockCalibrationConfig.std_floor) -> list[bool]:
@@ -32,9 +40,8 @@ def consistent_estimates(pieces: list[tuple[float, float, ClockCalibration]], th
     if len(pieces) < 3:
         return [True] * len(pieces)
     tried = np.unique(np.linspace(0, len(pieces) - 1, min(len(pieces), CONSENSUS_ESTIMATES)).round().astype(int))
-    centres = np.array([start + duration / 2 for start, duration, _ in pieces])
-    offsets = np.stack([estimate.offsets_at(duration / 2) for _, duration, estimate in pieces])[:, 1:]
-    stds = np.stack([estimate.offsets_std_s for _, _, estimate in pieces])[:, 1:]  # node 0 is the reference
+    centres, offsets, stds = _at_centres(pieces)
+    offsets, stds = offsets[:, 1:], stds[:, 1:]  # node 0 is the reference
     sigma = np.hypot(np.nan_to_num(stds, nan=floor_s), floor_s)
     best, keep = None, [True] * len(pieces)
     for i, j in itertools.combinations(tried, 2):
@@ -76,9 +83,7 @@ def combine_clock_estimates(pieces: list[tuple[float, float, ClockCalibration]],
         start, _, only = pieces[0]
         std = with_std_floor(only.offsets_std_s, floor_s)
         return dataclasses.replace(only, offsets_s=only.offsets_at(-start), offsets_std_s=std, times=only.times + start)
-    centres = np.array([start + duration / 2 for start, duration, _ in pieces])
-    offsets = np.stack([estimate.offsets_at(duration / 2) for _, duration, estimate in pieces])  # K x nodes
-    stds = np.stack([estimate.offsets_std_s for _, _, estimate in pieces])
+    centres, offsets, stds = _at_centres(pieces)
     known = np.isfinite(stds) & (stds > 0)
     stds = np.where(known, stds, np.median(stds[known]) if known.any() else 1e-5)
     weights = 1.0 / stds ** 2
