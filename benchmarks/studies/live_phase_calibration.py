@@ -8,11 +8,14 @@ errors are metres with heavy tails, not MMAUD V1's centimetres, so the ``robust`
 std far too small. A detection's noise then grows as its peak weakens: ``(reference / score) ** power``
 (the reference is the detections' median score, rounded); with ground truth, the power and a factor on the
 fitted noise are chosen on a small grid by the E at lag 1 s (the mean over the folders), among the pairs whose
-causal E is at or below the raw E in every folder. Last, with ground truth, the factors per lag (0, 0.5, 1 s,
-and offline for detections) that make the 2-std band cover 95 % of the errors
-(:func:`zoo.smoothing.calibration_factor`): ``std_scale`` over the detected rows, ``hold_scale`` over the held
-ones (their std is the prior's spread since the last detection, a different quantity). It prints the preset
-to paste into
+causal E is at or below the raw E in every folder. Then, with ground truth, the std's own score factor
+``(score / reference) ** std_score_power``: the power on a small grid whose 2-std bands, each state's factor
+fitted, cover closest to 95 % in every sixth of the rows by score (the sum of squared differences over the
+detected and the held rows at lags 0 and 1 s; a held row counts with the score of the detection before it).
+Last, the factors per lag (0, 0.5, 1 s, and offline for detections) that make the 2-std band cover 95 % of the
+errors (:func:`zoo.smoothing.calibration_factor`): ``std_scale`` over the detected rows, ``hold_scale`` over
+the held ones (their std is the prior's spread since the last detection, a different quantity). It prints the
+preset to paste into
 :data:`zoo.smoothing.ROBUST_PRESETS`. Use development flights only (seed 202): the held-out flights
 (seed 101) score it (:mod:`benchmarks.studies.live_phase_accuracy`).
 """
@@ -32,6 +35,8 @@ LAGS = (0.0, 0.5, 1.0)
 #: the grid of (factor on the fitted noise, score power) the E at lag 1 s chooses from
 NOISE_FACTORS = (0.3, 1.0, 3.0)
 SCORE_POWERS = (0.0, 2.0, 4.0, 5.0, 6.0)
+#: the grid of std score powers the coverage per sixth of the scores chooses from
+STD_SCORE_POWERS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5, 1.75, 2.0)
 
 
 def _gated(rows, hp, lag: float, calibrate: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -45,6 +50,45 @@ def _gated(rows, hp, lag: float, calibrate: bool = False) -> tuple[np.ndarray, n
         out += gated.add(PhaseRow(row.timestamp, row.raw, row.score, row.detected, row.state))
     out += gated.flush()
     return np.array([r.mean for r in out]), np.array([r.std for r in out]), np.array([r.state for r in out])
+
+
+def _basis_scores(rows) -> np.ndarray:
+    """Per row, the score its std's factor uses: a detection's own, a held row's last detection's (else NaN)."""
+    scores, last = np.full(len(rows), np.nan), np.nan
+    for i, row in enumerate(rows):
+        if row.state == "detected":
+            last = row.score
+        if row.state in ("detected", "held"):
+            scores[i] = last
+    return scores
+
+
+def _std_score_power(flights, hp) -> float:
+    """The power of :data:`STD_SCORE_POWERS` whose 2-std bands cover closest to 95 % in every sixth of the rows
+    by score (the module docstring); ``hp`` has no std score power yet."""
+    pooled = {}  # (lag, state) -> (|error| / std per axis, score)
+    for lag in (0.0, 1.0):
+        for _, rows, truth in flights:
+            mean, std, states = _gated(rows, hp, lag)
+            scores = _basis_scores(rows)
+            for state in ("detected", "held"):
+                pick = states == state
+                z, s = pooled.get((lag, state), (np.empty((0, 3)), np.empty(0)))
+                pooled[(lag, state)] = (np.concatenate([z, np.abs(mean - truth)[pick] / std[pick]]),
+                                        np.concatenate([s, scores[pick]]))
+    costs = {}
+    for power in STD_SCORE_POWERS:
+        cost = 0.0
+        for z, scores in pooled.values():
+            if not scores.size:
+                continue
+            scaled = z / ((scores / hp.score_reference) ** power)[:, None]
+            scaled = scaled / (np.quantile(scaled, 0.95) / 2.0)  # this state's factor at this lag applied
+            sixths = np.minimum((6 * np.argsort(np.argsort(scores)) / scores.size).astype(int), 5)
+            cost += sum(((scaled[sixths == k] <= 2.0).mean() - 0.95) ** 2 for k in range(6))
+        costs[power] = cost
+        print(f"std score power {power:g}: coverage cost {cost:.4f}", flush=True)
+    return min(costs, key=costs.get)
 
 
 def _factor(parts, state: str) -> float:
@@ -128,6 +172,8 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit("no noise factor and score power keeps the causal E at or below the raw E")
     hp = best[1]
     print(f"chosen: noise {hp.noise}, score power {hp.score_power:g} (mean E at lag 1 s {best[0]:.3f})")
+    hp = replace(hp, std_score_power=_std_score_power(flights, hp))
+    print(f"chosen: std score power {hp.std_score_power:g}")
     factors, holds = [], []
     for lag in LAGS:
         parts = [(*_gated(rows, hp, lag), truth) for _, rows, truth in flights]
@@ -149,7 +195,8 @@ def main(argv: list[str] | None = None) -> None:
     ls, os_, noise = (tuple(float(f"{v:.3g}") for v in a) for a in hp.arrays())
     print(f'"srp_phat": RobustHyperparameters(\n    lengthscale={ls}, outputscale={os_}, noise={noise}, '
           f"dof={hp.dof:.3g},\n    std_scale={tuple(factors)},\n    score_power={hp.score_power:g}, "
-          f"score_reference={hp.score_reference:g},\n    hold_scale={tuple(holds)},\n),".replace("inf", "OFFLINE"))
+          f"score_reference={hp.score_reference:g},\n    hold_scale={tuple(holds)}, "
+          f"std_score_power={hp.std_score_power:g},\n),".replace("inf", "OFFLINE"))
 
 if __name__ == "__main__":
     main()

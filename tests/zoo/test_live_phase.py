@@ -234,6 +234,32 @@ def test_a_held_rows_std_is_calibrated_by_the_hold_factor_and_a_detections_by_th
         replace(plain, hold_scale=((0.0, -1.0),))
 
 
+def test_the_std_score_factor_scales_a_detections_std_by_its_score_and_a_held_rows_by_the_detection_before():
+    """With std_score_power the std of a detection is multiplied by (score / reference) ** power, that of a
+    held row (extrapolated at lag 0, interpolated at lag 0.3 s) by its last detection's factor; the means
+    do not change."""
+    from dataclasses import replace
+
+    steps = [(0.1 * k, "detected", 2.0 + k) for k in range(1, 11)] + [(1.1, "held", 0.5), (1.2, "held", 0.7),
+                                                                       (1.3, "detected", 9.0)]
+
+    def run(hp, lag: float) -> list[PhaseRow]:
+        gated = GatedSmoothing(OnlineSmoother(hp, lag=lag))
+        out = []
+        for t, state, score in steps:
+            out += gated.add(PhaseRow(t, np.array([t, 10.0, 5.0]), score, state == "detected", state))
+        return out + gated.flush()
+
+    plain = replace(ROBUST_PRESETS["srp_phat"], score_power=0.0, std_score_power=0.0)
+    for lag in (0.0, 0.3):
+        base, scaled = run(plain, lag), run(replace(plain, std_score_power=2.0, score_reference=4.0), lag)
+        assert [r.state for r in base] == [s for _, s, _ in steps]
+        for b, s, (_, state, score) in zip(base, scaled, steps, strict=True):
+            np.testing.assert_array_equal(s.mean, b.mean)
+            basis = score if state == "detected" else 12.0  # the held rows: the 1.0 s detection's score
+            np.testing.assert_allclose(s.std, (basis / 4.0) ** 2 * b.std, rtol=1e-12)
+
+
 def test_a_weak_detection_moves_the_smoothed_track_less_when_the_preset_scales_noise_by_score():
     """The gated smoother hands each detection's score to the smoother as a noise scale."""
     from dataclasses import replace

@@ -297,38 +297,49 @@ class GatedSmoothing:
     lag 0) it takes the latest smoothed position, its std grown by what the smoother's Matern-5/2 prior lets
     the track move in the time since (variance ``outputscale * (1 - rho(dt))`` per axis, ``rho`` the
     prior's correlation). A held row's std, either way, is calibrated by the preset's ``hold_scale`` factor
-    (the prior's spread is not the detections' error, which ``std_scale`` calibrates). A fallback row keeps
-    its own position with std NaN.
+    (the prior's spread is not the detections' error, which ``std_scale`` calibrates). A measured row's std,
+    and a held row's, is also multiplied by the preset's
+    :meth:`~zoo.smoothing.RobustHyperparameters.std_score_factor` of its score (a held row: of the last
+    measurement before it). A fallback row keeps its own position with std NaN.
     """
 
     def __init__(self, smoother: OnlineSmoother):
         self.smoother = smoother
         self.queue: deque[PhaseRow] = deque()
         self.waiting: dict[float, PhaseRow] = {}
-        self.holding: deque[PhaseRow] = deque()  #: held rows waiting for ``lag`` seconds of stream
+        #: held rows waiting for ``lag`` seconds of stream, each with the score of the last measurement before it
+        self.holding: deque[tuple[PhaseRow, float]] = deque()
         self.last_fed: float | None = None
-        self.latest: tuple[float, np.ndarray, np.ndarray] | None = None  #: time, mean, std of the last measured row
+        self.last_score = math.nan  #: the score of the last measured row fed
+        #: time, mean, std (uncalibrated) and score of the last measured row given back
+        self.latest: tuple[float, np.ndarray, np.ndarray, float] | None = None
         lengthscale, outputscale, _ = smoother.hyperparameters.arrays()
         self._lengthscale, self._outputscale = lengthscale, outputscale
 
-    def held_std(self, std: np.ndarray, elapsed: float) -> np.ndarray:
-        """The std of a position held ``elapsed`` seconds after the smoothed one of (calibrated) std ``std``."""
+    def held_std(self, std: np.ndarray, elapsed: float, score: float) -> np.ndarray:
+        """The calibrated std of a position held ``elapsed`` seconds after the smoothed one of (uncalibrated)
+        std ``std`` and detection ``score``."""
         r = np.sqrt(5.0) * max(elapsed, 0.0) / self._lengthscale
         moved = self._outputscale * (1.0 - (1.0 + r + r * r / 3.0) * np.exp(-r))
-        return self.smoother.hold_scale * np.sqrt((std / self.smoother.scale) ** 2 + moved)
+        return self._score_factor(score) * self.smoother.hold_scale * np.sqrt(std**2 + moved)
+
+    def _score_factor(self, score: float) -> float:
+        return self.smoother.hyperparameters.std_score_factor(score)
 
     def _fill(self, rows: list[OnlineRow]) -> None:
         for row in rows:
             target = self.waiting.pop(row.timestamp)
-            target.mean, target.std, target.resolved = np.asarray(row.mean), np.asarray(row.std), True
+            target.mean, target.resolved = np.asarray(row.mean), True
+            target.std = np.asarray(row.std) * self._score_factor(target.score)
 
     def _settle(self, now: float | None) -> None:
         """Resolve the held rows whose lag has passed by ``now`` (None: all), before a later row is fed."""
-        while self.holding and (now is None or now > self.holding[0].timestamp + self.smoother.lag):
-            row = self.holding.popleft()
+        while self.holding and (now is None or now > self.holding[0][0].timestamp + self.smoother.lag):
+            row, score = self.holding.popleft()
             last = self.smoother.last_time
             if last is not None and last > row.timestamp:  # a measurement within the lag: interpolate
-                row.mean, row.std = self.smoother.predict(row.timestamp)
+                row.mean, std = self.smoother.predict(row.timestamp)
+                row.std = std * self._score_factor(score)
                 row.resolved = True
 
     def add(self, row: PhaseRow) -> list[PhaseRow]:
@@ -339,10 +350,10 @@ class GatedSmoothing:
             self.waiting[row.timestamp] = row
             scale = self.smoother.hyperparameters.noise_scale(row.score)  # a weak peak: a noisier position
             self._fill(self.smoother.update(row.timestamp, row.raw, scale))
-            self.last_fed = row.timestamp
+            self.last_fed, self.last_score = row.timestamp, row.score
             return self._ready()
         if row.state == "held" and self.smoother.lag > 0 and self.last_fed is not None:
-            self.holding.append(row)
+            self.holding.append((row, self.last_score))
         if self.waiting and self.last_fed is not None and row.timestamp - self.last_fed >= self.smoother.lag:
             self._fill(self.smoother.flush())  # no measurement for lag seconds: the waiting ones have their future
         return self._ready()
@@ -356,15 +367,17 @@ class GatedSmoothing:
         out = []
         while self.queue:
             row = self.queue[0]
-            if not row.resolved and (row.measured or (self.holding and self.holding[0] is row)):
+            if not row.resolved and (row.measured or (self.holding and self.holding[0][0] is row)):
                 break  # waiting for its lag
             self.queue.popleft()
             if row.measured:
-                self.latest = (row.timestamp, row.mean, row.std)
+                uncalibrated = row.std / (self.smoother.scale * self._score_factor(row.score))
+                self.latest = (row.timestamp, row.mean, uncalibrated, row.score)
             elif row.resolved:
                 pass  # a held row interpolated by the smoother
             elif row.state == "held" and self.latest is not None:
-                row.mean, row.std = self.latest[1], self.held_std(self.latest[2], row.timestamp - self.latest[0])
+                t, mean, std, score = self.latest
+                row.mean, row.std = mean, self.held_std(std, row.timestamp - t, score)
             else:
                 row.mean, row.std = row.raw.copy(), np.full(3, np.nan)
             out.append(row)

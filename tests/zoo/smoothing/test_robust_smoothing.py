@@ -270,6 +270,18 @@ def test_the_noise_scale_of_a_detection_score():
         replace(HP, score_reference=0.0)
 
 
+def test_the_std_factor_of_a_detection_score():
+    from dataclasses import replace
+
+    assert HP.std_score_factor(3.0) == 1.0  # no std score power: the std as the smoother gives it
+    scored = replace(HP, std_score_power=1.5, score_reference=4.0)
+    assert scored.std_score_factor(4.0) == 1.0
+    assert scored.std_score_factor(16.0) == pytest.approx(8.0) and scored.std_score_factor(1.0) == pytest.approx(0.125)
+    assert scored.std_score_factor(float("nan")) == 1.0 and scored.std_score_factor(0.0) == 1.0
+    with pytest.raises(ValueError, match="std_score_power"):
+        replace(HP, std_score_power=-0.5)
+
+
 def test_predict_between_frames_is_the_exact_posterior_given_the_weights_and_noise_scales():
     """The interpolation at a time without a frame equals the Kalman smoother over every frame so far, with
     that time as an unobserved step, each frame at its last weight and its own noise scale."""
