@@ -23,6 +23,10 @@ section that quotes its numbers (or only its command):
   model", clock table
 - ``clock_calibration --condition NAME SHARED_DIR CLOCKS_DIR``: how close the self-calibrated node clocks come,
   and srp_phat's E with them? same section, self-calibration table
+- ``clock_stretches --data CLOCKS_DIR [--seconds 10 30]``: how close the clocks estimated from one stretch of S
+  seconds come (as ``aaute track`` estimates them)? same section, self-calibration paragraph
+- ``live_clock_calibration --condition NAME SHARED_DIR CLOCKS_DIR``: the live self-calibration's offsets, E and
+  cost? same section, live self-calibration table
 - ``datamodule_bench --data DIR``: the DataModule's feature, cache and epoch speed and memory? not in the README
 - ``recording_bench``: the recording pipeline's speed and size? ``make bench``; "Tests, lint, benchmarks", command only
 """

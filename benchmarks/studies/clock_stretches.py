@@ -8,7 +8,8 @@ centre are compared with the truth there (the recording's ``clocks_truth``, read
 by node relative to node 0, and its std (with the estimator's ``std_floor`` in quadrature, as the tracker's
 line through the estimates takes it) with the error. Per ``S`` it prints the stretches calibrated and
 refused (by the refusal's reason), the share of offsets more than 0.05 and 0.1 ms off, the median absolute
-error, the share within 1 and 2 std and the median CPU per estimate; then every offset more than 0.1 ms off.
+error, the share within 1 and 2 std and the median CPU per estimate (of the estimating thread; calibrated
+and refused apart); then every offset more than 0.1 ms off.
 
 Run: ``python -m benchmarks.studies.clock_stretches --data CLOCKS_DIR [CLOCKS_DIR ...] [--seconds 10 30]
 [--workers 2] [--out CSV]``. One torch thread per worker.
@@ -80,17 +81,18 @@ def summary(rows: pd.DataFrame) -> str:
     """Markdown: per stretch length, how many stretches were calibrated and how far their offsets are off."""
     lines = ["| S | stretches calibrated / refused | refused because | offsets > " +
              " / > ".join(f"{limit:g}" for limit in LIMITS_MS) + " ms off | median abs. error | within 1 / 2 std "
-             "| CPU per estimate, median |", "|--:|--:|:--|--:|--:|--:|--:|"]
+             "| CPU per estimate, median: calibrated / refused |", "|--:|--:|:--|--:|--:|--:|--:|"]
     for seconds, group in rows.groupby("seconds"):
         ok, refused = group[group.status == "ok"], group[group.status == "refused"]
         calibrated = ok[["recording", "stretch"]].drop_duplicates().shape[0]
         reasons = "; ".join(f"{reason}: {count}" for reason, count in refused.reason.value_counts().items()) or "-"
         error = ok.error_ms.abs()
         ratio = error / ok.std_ms
-        cpu = group.drop_duplicates(["recording", "stretch"]).cpu_s.median()
+        cpu = group.drop_duplicates(["recording", "stretch"]).groupby("status").cpu_s.median()
         off = " / ".join(f"{(error > limit).mean():.1%}" for limit in LIMITS_MS) if len(ok) else "-"
         lines.append(f"| {seconds:g} s | {calibrated} / {len(refused)} | {reasons} | {off} | {error.median():.3f} ms | "
-                     f"{(ratio <= 1).mean():.0%} / {(ratio <= 2).mean():.0%} | {cpu:.1f} s |")
+                     f"{(ratio <= 1).mean():.0%} / {(ratio <= 2).mean():.0%} | {cpu.get('ok', np.nan):.1f} / "
+                     f"{cpu.get('refused', np.nan):.1f} s |")
     return "\n".join(lines)
 
 

@@ -64,7 +64,7 @@ def test_the_summary_counts_stretches_and_offsets():
           "cpu_s": 2.0} for n, e in ((1, 0.01), (2, -0.07), (3, 0.2))]
         + [{"recording": "a", "stretch": 1, "seconds": 10.0, "status": "refused", "reason": "too few", "cpu_s": 1.0}])
     line = summary(rows).splitlines()[2]
-    assert line.startswith("| 10 s | 1 / 1 | too few: 1 | 66.7% / 33.3% | 0.070 ms | 33% / 67% | 1.5 s |"), line
+    assert line.startswith("| 10 s | 1 / 1 | too few: 1 | 66.7% / 33.3% | 0.070 ms | 33% / 67% | 2.0 / 1.0 s |"), line
 
 
 def test_a_folder_without_recordings_is_one_line(tmp_path):
