@@ -80,7 +80,7 @@ class ClockCalibrationConfig:
     ground_height: float = 0.0  #: z of the reflecting roof in the rig frame (m)
     sigma: float = 2e-5  #: scale of a measurement's error (s): residuals are divided by it
     #: error of an offset (s) that no spread over the frames shows, added in quadrature to its std (dev flights:
-    #: within 1 / 2 std 69-86 / 83-100 % of 10 s and 30 s stretch offsets, 45-67 / 69-94 % without; README)
+    #: within 1 / 2 std 77-89 / 93-96 % of 10 s and 30 s stretch offsets, 53-72 / 81-92 % without; README)
     std_floor: float = 2e-5
     loss_scale: float = 3.0  #: soft-L1 knee, in units of ``sigma``
     min_peak: float = 4.0  #: blocks whose multipath score (mean over pairs, in units of the correlation's
