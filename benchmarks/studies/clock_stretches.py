@@ -117,8 +117,9 @@ def main(argv: list[str] | None = None) -> None:
     off = rows[(rows.status == "ok") & (rows.error_ms.abs() > max(LIMITS_MS))] if "error_ms" in rows else rows.iloc[:0]
     if len(off):
         print(f"\nOffsets more than {max(LIMITS_MS):g} ms off:\n")
-        print(off[["recording", "drone", "seconds", "stretch", "node", "error_ms", "std_ms", "frames"]]
-              .to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+        off = off.astype({"node": int, "frames": int})[["recording", "drone", "seconds", "stretch", "node", "error_ms",
+                                                         "std_ms", "frames"]]
+        print(off.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
 
 
 if __name__ == "__main__":
