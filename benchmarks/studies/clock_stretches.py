@@ -12,7 +12,7 @@ error, the share within 1 and 2 std and the median CPU per estimate (of the esti
 and refused apart); then every offset more than 0.1 ms off.
 
 Run: ``python -m benchmarks.studies.clock_stretches --data CLOCKS_DIR [CLOCKS_DIR ...] [--seconds 10 30]
-[--workers 2] [--out CSV]``. One torch thread per worker.
+[--workers 2] [--out CSV]``. One thread per worker (torch, BLAS and OpenMP).
 """
 
 from __future__ import annotations
@@ -25,14 +25,13 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-import torch
 
 from benchmarks.studies.common import true_clocks
 from datamodules.features.clock_calibration import ClockCalibration, ClockCalibrationConfig, with_std_floor
 from datamodules.formats import discover_recordings
 from datamodules.formats.mcap_file import read_mcap
 from datamodules.recording import RecordingError
-from zoo.deploy.live_clocks import estimate_stretch
+from zoo.deploy.live_clocks import estimate_stretch, limit_to_one_thread
 
 #: offsets off by more than these (ms) are counted
 LIMITS_MS = (0.05, 0.1)
@@ -56,7 +55,7 @@ def refusal_reason(error: Exception) -> str:
 
 def recording_rows(path: Path, seconds: float) -> list[dict[str, Any]]:
     """One row per node of each calibrated stretch of ``path``, one per refused stretch."""
-    torch.set_num_threads(1)
+    limit_to_one_thread()  # as the tracker's worker runs
     recording = read_mcap(path)
     offsets, drifts = true_clocks(recording.meta)
     audio = recording.audio

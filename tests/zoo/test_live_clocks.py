@@ -61,3 +61,16 @@ def test_estimates_from_every_stretch_follow_a_drifting_clock(drifting, caplog):
     whole = _run(samples, rate, mics, follow=True, block=samples.shape[1])
     assert len(whole.estimates) == 3
     np.testing.assert_array_equal(whole.calibration.offsets_s, followed.calibration.offsets_s)
+
+
+def test_the_estimating_worker_runs_every_thread_pool_on_one_thread():
+    """The worker's limit reaches torch and every BLAS / OpenMP library, SciPy's lazily loaded one included
+    (run in a fresh interpreter, as the worker is spawned, since the limit holds for the process)."""
+    import subprocess
+    import sys
+
+    code = ("import torch; from threadpoolctl import threadpool_info; "
+            "from zoo.deploy.live_clocks import limit_to_one_thread; limit_to_one_thread(); import scipy.linalg; "
+            "print(torch.get_num_threads(), max(p['num_threads'] for p in threadpool_info()))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["1", "1"], out

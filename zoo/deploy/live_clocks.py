@@ -51,9 +51,23 @@ def estimate_stretch(samples: np.ndarray, sample_rate: float, mics: np.ndarray) 
     return result, time.perf_counter() - wall, time.thread_time() - cpu
 
 
+def limit_to_one_thread() -> None:
+    """Run this process's torch, BLAS and OpenMP pools on one thread each, for good.
+
+    SciPy's BLAS is loaded first (it loads lazily, and a limit reaches only the libraries already loaded).
+    On the fit's small matrices more BLAS threads are overhead: a 30 s stretch of a development flight took
+    20-24 s (31-35 s of CPU) with two, 16 s (as much CPU) with one, to the same offsets (two runs each)."""
+    import scipy.linalg  # noqa: F401
+    import scipy.optimize  # noqa: F401
+    from threadpoolctl import threadpool_limits
+
+    torch.set_num_threads(1)
+    threadpool_limits(limits=1)
+
+
 def _start_worker() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the tracker's to handle
-    torch.set_num_threads(1)  # one core for the estimate, the others stay with the tracker
+    limit_to_one_thread()  # one core for the estimate, the others stay with the tracker
 
 
 class CalibratingPhase(IncrementalPhase):
@@ -69,9 +83,9 @@ class CalibratingPhase(IncrementalPhase):
     ``seconds`` serves the whole stream.
 
     With ``background`` (the default) each estimate runs in a worker process (started with the stream, one
-    torch thread) while the stream goes on: the rows keep coming, uncorrected (or corrected by the earlier
-    estimates), and the correction starts with the first block after the estimate is done; a stretch that ends
-    while an estimate is still running is skipped. :meth:`close` ends the worker.
+    thread: :func:`limit_to_one_thread`) while the stream goes on: the rows keep coming, uncorrected (or
+    corrected by the earlier estimates), and the correction starts with the first block after the estimate is
+    done; a stretch that ends while an estimate is still running is skipped. :meth:`close` ends the worker.
     Without it the block that completes a stretch waits for its estimate (seconds of CPU), and so do the rows
     behind it; a replay is then the same whatever the machine's speed. ``estimate_seconds`` and
     ``estimate_cpu_seconds`` say what the first estimate took (wall and CPU), ``calibrated_at``
