@@ -53,10 +53,11 @@ def _gated(rows, hp, lag: float, calibrate: bool = False) -> tuple[np.ndarray, n
 
 
 def _basis_scores(rows) -> np.ndarray:
-    """Per row, the score its std's factor uses: a detection's own, a held row's last detection's (else NaN)."""
+    """Per row, the score its std's factor uses, as :class:`~zoo.deploy.live_phase.GatedSmoothing` takes it: a
+    measurement's own, a held row's last measurement's (else NaN)."""
     scores, last = np.full(len(rows), np.nan), np.nan
     for i, row in enumerate(rows):
-        if row.state == "detected":
+        if row.measured:
             last = row.score
         if row.state in ("detected", "held"):
             scores[i] = last
@@ -66,20 +67,19 @@ def _basis_scores(rows) -> np.ndarray:
 def _std_score_power(flights, hp) -> float:
     """The power of :data:`STD_SCORE_POWERS` whose 2-std bands cover closest to 95 % in every sixth of the rows
     by score (the module docstring); ``hp`` has no std score power yet."""
-    pooled = {}  # (lag, state) -> (|error| / std per axis, score)
+    parts: dict[tuple[float, str], list[tuple[np.ndarray, np.ndarray]]] = {}  # (|error| / std per axis, score)
     for lag in (0.0, 1.0):
         for _, rows, truth in flights:
             mean, std, states = _gated(rows, hp, lag)
             scores = _basis_scores(rows)
             for state in ("detected", "held"):
                 pick = states == state
-                z, s = pooled.get((lag, state), (np.empty((0, 3)), np.empty(0)))
-                pooled[(lag, state)] = (np.concatenate([z, np.abs(mean - truth)[pick] / std[pick]]),
-                                        np.concatenate([s, scores[pick]]))
+                parts.setdefault((lag, state), []).append((np.abs(mean - truth)[pick] / std[pick], scores[pick]))
+    pooled = [(np.concatenate([z for z, _ in part]), np.concatenate([s for _, s in part])) for part in parts.values()]
     costs = {}
     for power in STD_SCORE_POWERS:
         cost = 0.0
-        for z, scores in pooled.values():
+        for z, scores in pooled:
             if not scores.size:
                 continue
             scaled = z / ((scores / hp.score_reference) ** power)[:, None]
