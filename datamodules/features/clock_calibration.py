@@ -16,9 +16,13 @@ offset touches it. Per frame this estimator measures
   multipath peaks (direct-direct, image-direct, direct-image, image-image) given the two delays,
 
 then fits one source position per frame and the offsets and drifts shared by all frames (node 0 = 0)
-by robust least squares (:func:`scipy.optimize.least_squares`, soft-L1 loss). The
-uncertainty is the cluster-robust sandwich of that fit over 2 s clusters of frames (the first-order
-delete-a-cluster jackknife) with a floor in quadrature, the error that no spread over the frames shows;
+by robust least squares (:func:`scipy.optimize.least_squares`, soft-L1 loss). When a static source is heard
+throughout (a rooftop HVAC unit), its time differences drift along straight lines whose slopes are the drifts,
+whatever its position (:mod:`datamodules.features.static_drift`): the drifts are then taken from it, the
+cross-spectra corrected for them (so the static source stays static and its mean is subtracted) and the
+offsets fitted alone. The uncertainty is the cluster-robust sandwich of that fit over 2 s clusters of
+frames (the first-order delete-a-cluster jackknife) with a floor in quadrature, the error that no spread
+over the frames shows;
 refits leaving out blocks of frames (``uncertainty="jackknife"``) start from the solution and stop at their
 iteration limit before they have moved as far as they would, so their spread is too small.
 
@@ -39,7 +43,8 @@ import numpy as np
 import torch
 
 from datamodules.errors import ConfigError
-from datamodules.features.phase import SPEED_OF_SOUND, GccPhat, PhaseRecipe, mic_pairs
+from datamodules.features.phase import SPEED_OF_SOUND, GccPhat, PhaseRecipe, correct_cross_spectra, mic_pairs
+from datamodules.features.static_drift import StaticDrift, static_source_drift
 from datamodules.recording import AudioStream, RecordingError
 
 #: when phase features correct the nodes' clocks: ``auto`` when the recording says its nodes do not share one
@@ -91,6 +96,10 @@ class ClockCalibrationConfig:
     #: drifts of 2-12 ppm left out moved them by up to 0.43 ms
     fit_drift: bool | None = True
     drift_significance: float = 3.0
+    #: take the drifts from a static source when one is heard throughout (a rooftop HVAC unit:
+    #: :func:`~datamodules.features.static_drift.static_source_drift`, a tenth of a ppm on development flights)
+    #: and fit the offsets alone; without one, ``fit_drift`` decides
+    static_drift: bool = True
     #: how the offsets' standard errors are found: ``sandwich``, the cluster-robust sandwich of the robust fit
     #: over clusters of ``cluster_seconds`` (a linearised delete-a-cluster jackknife: no refits), or
     #: ``jackknife``, refits leaving out each of ``jackknife_blocks`` contiguous blocks of frames
@@ -116,6 +125,8 @@ class ClockCalibration:
     drifts_std_ppm: np.ndarray
     frames: int  #: frames used
     residual_rms_s: float  #: robust RMS of the fit's residuals (s)
+    #: the drifts were told by a static source (:func:`static_drifts`), not fitted with the offsets
+    static_drift: bool = False
     positions: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 3)))  #: per frame (m)
     times: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))  #: frame centres (s from sample 0)
 
@@ -128,18 +139,21 @@ class ClockCalibration:
         """The estimate for a recording's metadata (``clock_calibration``)."""
         return {"offsets_s": self.offsets_s.tolist(), "offsets_std_s": self.offsets_std_s.tolist(),
                 "drifts_ppm": self.drifts_ppm.tolist(), "drifts_std_ppm": self.drifts_std_ppm.tolist(),
-                "frames": int(self.frames), "residual_rms_s": float(self.residual_rms_s)}
+                "frames": int(self.frames), "residual_rms_s": float(self.residual_rms_s),
+                "static_drift": bool(self.static_drift)}
 
     def to_array(self) -> np.ndarray:
-        """5 x nodes: offsets, their std, drifts, their std, then [frames, residual RMS, 0 ...] (for caches)."""
+        """5 x nodes: offsets, their std, drifts, their std, then [frames, residual RMS, static drift, 0 ...]
+        (for caches; with two nodes the static drift flag is not kept)."""
         extra = np.zeros(self.offsets_s.size)
-        extra[:2] = [self.frames, self.residual_rms_s][:extra.size]
+        extra[:3] = [self.frames, self.residual_rms_s, float(self.static_drift)][:extra.size]
         return np.stack([self.offsets_s, self.offsets_std_s, self.drifts_ppm, self.drifts_std_ppm, extra])
 
     @classmethod
     def from_array(cls, array: np.ndarray) -> ClockCalibration:
         array = np.asarray(array, dtype=np.float64)
-        return cls(*array[:4].copy(), frames=int(array[4, 0]), residual_rms_s=float(array[4, 1]))
+        static = bool(array[4, 2]) if array.shape[1] > 2 else False
+        return cls(*array[:4].copy(), frames=int(array[4, 0]), residual_rms_s=float(array[4, 1]), static_drift=static)
 
     def key(self) -> str:
         """A short digest of the correction it makes (for feature cache keys)."""
@@ -151,7 +165,8 @@ class ClockCalibration:
         parts = [f"{1e3 * o:+.3f} +- {1e3 * s:.3f}" for o, s in zip(self.offsets_s, self.offsets_std_s, strict=True)]
         text = f"clock offsets (ms, node 0 = 0): {', '.join(parts)} from {self.frames} frames"
         if np.any(self.drifts_ppm):
-            text += "; drifts (ppm): " + ", ".join(f"{d:+.1f}" for d in self.drifts_ppm)
+            source = ", from a static source" if self.static_drift else ""
+            text += f"; drifts (ppm{source}): " + ", ".join(f"{d:+.1f}" for d in self.drifts_ppm)
         return text
 
 
@@ -188,12 +203,15 @@ def _interp(corr: np.ndarray, lags: np.ndarray, rate: float, half: int) -> np.nd
     return np.where(inside, value, 0.0)
 
 
-def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibrationConfig()) -> FrameMeasurements:
+def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibrationConfig(),
+            drifts_ppm: np.ndarray | None = None) -> FrameMeasurements:
     """Reflection delays and multipath-matched pair time differences of blocks spread over ``audio``.
 
     Each frame gives a PHAT correlation per pair (its cross-spectra minus their mean over all blocks:
     static sources) and a cepstrum per channel; a block averages its frames' correlations and cepstra
-    (in the lag domain, so a moving source smears its peaks a little instead of cancelling them).
+    (in the lag domain, so a moving source smears its peaks a little instead of cancelling them). With known
+    ``drifts_ppm`` (per node) the cross-spectra are corrected for them first, so a static source stays static
+    and the time differences carry the offsets alone.
     """
     fs, channels = float(audio.sample_rate), audio.num_channels
     c = config.speed_of_sound
@@ -229,14 +247,22 @@ def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibratio
         return torch.fft.rfft(x * gcc.window, n=gcc.n_fft)[..., gcc.band]
 
     with torch.no_grad():
-        def cross_of(spectra: torch.Tensor) -> torch.Tensor:
-            return (spectra[gcc.first] * spectra[gcc.second].conj()).to(torch.complex128)
+        band_freqs = torch.from_numpy(freqs)
+        frame_centres = (np.arange(config.block_frames) + 0.5) * gcc.frame / fs
+
+        def cross_of(spectra: torch.Tensor, start: int) -> torch.Tensor:
+            cross = (spectra[gcc.first] * spectra[gcc.second].conj()).to(torch.complex128)
+            if drifts_ppm is None:
+                return cross
+            drift = np.asarray(drifts_ppm, dtype=np.float64) * 1e-6 * (start / fs + frame_centres)[:, None]
+            return correct_cross_spectra(cross, band_freqs, drift, gcc.first, gcc.second)
 
         block_spectra = [spectra_of(start) for start in starts]  # each C x F x K, read and transformed once
-        static = sum(cross_of(spectra).mean(dim=1) for spectra in block_spectra) / len(starts)
+        block_cross = [cross_of(spectra, start) for spectra, start in zip(block_spectra, starts, strict=True)]
+        static = sum(cross.mean(dim=1) for cross in block_cross) / len(starts)
         corr_blocks, cepstrum_blocks = [], []
-        for spectra in block_spectra:
-            cross = cross_of(spectra) - static[:, None, :]
+        for spectra, cross in zip(block_spectra, block_cross, strict=True):
+            cross = cross - static[:, None, :]
             corr_blocks.append(gcc.correlate(cross).mean(dim=1).double())
             log_power = torch.log(spectra.abs().double() ** 2 + 1e-30)
             relative = log_power - log_power.mean(dim=0, keepdim=True)
@@ -406,6 +432,16 @@ def _initial_positions(mics: np.ndarray, m: FrameMeasurements, frames: np.ndarra
     return out
 
 
+def static_drifts(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibrationConfig()) -> StaticDrift | None:
+    """The nodes' drifts told by a static source in ``audio``, searched as far as ``config`` searches the pairs'
+    time differences (:func:`~datamodules.features.static_drift.static_source_drift`), or None."""
+    mics = np.asarray(audio.mic_positions, dtype=np.float64)
+    spread = max(np.linalg.norm(mics[i] - mics[j]) for i, j in mic_pairs(audio.num_channels)) / config.speed_of_sound
+    return static_source_drift(audio, f_min=config.f_min, f_max=config.f_max, frame_seconds=config.frame_seconds,
+                               lag_rate=config.lag_rate, max_delay=spread + config.max_offset,
+                               max_drift_ppm=config.max_drift_ppm)
+
+
 def estimate_clock_offsets(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibrationConfig()
                            ) -> ClockCalibration:
     """Estimate the nodes' clock offsets (node 0 = 0) of ``audio`` from its own sound (see the module docstring).
@@ -420,13 +456,18 @@ def estimate_clock_offsets(audio: AudioStream, config: ClockCalibrationConfig = 
         raise ClockCalibrationError(f"clock calibration needs at least 2 microphones, got {audio.num_channels}")
     if not np.isfinite(mics).all() or not np.any(mics):
         raise ClockCalibrationError("clock calibration needs the microphone positions (all zero or missing)")
-    m = measure(audio, config)
+    static = static_drifts(audio, config) if config.static_drift else None
+    m = measure(audio, config, None if static is None else static.drifts_ppm)
     frames = np.flatnonzero((m.score >= config.min_peak) & np.isfinite(m.reflection).all(axis=1))
     if frames.size < config.min_blocks:
         raise ClockCalibrationError(f"clock calibration found a coherent source in {frames.size} blocks, needs "
                                     f"{config.min_blocks}")
     positions = _initial_positions(mics, m, frames, config)
-    if config.fit_drift is None:  # fit drifts; keep them only if one of them is told from zero
+    if static is not None:  # the time differences are corrected for the drifts: the offsets alone remain
+        result = _fit(mics, m, frames, positions, dataclasses.replace(config, fit_drift=False))
+        result.drifts_ppm, result.drifts_std_ppm = static.drifts_ppm.copy(), static.drifts_std_ppm.copy()
+        result.static_drift = True
+    elif config.fit_drift is None:  # fit drifts; keep them only if one of them is told from zero
         result = _fit(mics, m, frames, positions, dataclasses.replace(config, fit_drift=True))
         told = np.abs(result.drifts_ppm) > config.drift_significance * result.drifts_std_ppm
         if not np.any(told | ~np.isfinite(result.drifts_std_ppm)):

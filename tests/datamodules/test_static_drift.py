@@ -1,0 +1,109 @@
+"""Node drifts from a static source: found where one is heard throughout, never made up from a moving one."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from datamodules.features.clock_calibration import (
+    ClockCalibration,
+    ClockCalibrationConfig,
+    estimate_clock_offsets,
+    static_drifts,
+)
+from datamodules.features.phase import SPEED_OF_SOUND, mic_pairs
+from datamodules.features.static_drift import _node_drifts, static_source_drift
+from datamodules.recording import ArrayAudio
+from datamodules.simulate.acoustics import AudioConfig
+from datamodules.simulate.ambient import AmbientConfig
+from datamodules.simulate.clocks import resample_at_clock
+from datamodules.simulate.simulator import SimulationConfig, simulate_recording
+from datamodules.simulate.trajectory import TrajectoryConfig
+
+FS = 48000
+MICS = np.array([[0.0, 0.0, 0.0], [1.6, 0.0, 0.1], [0.0, 1.6, 0.2], [1.6, 1.6, 0.0]])
+DRIFTS = np.array([0.0, 12.0, -18.0, 25.0])  #: ppm, node 0 the reference
+
+
+def _static_source(seconds: float, drifts: np.ndarray, snr_db: float = 0.0, seed: int = 0) -> ArrayAudio:
+    """Noise from a source 10 m away heard by every microphone on its node's drifting clock, plus noise of
+    the same power that differs per microphone (``snr_db`` below the source)."""
+    rng = np.random.default_rng(seed)
+    count = int(seconds * FS)
+    source = np.fft.rfft(rng.standard_normal(count + 2 * FS))
+    frequencies = np.fft.rfftfreq(count + 2 * FS)  # cycles per sample
+    position = np.array([9.0, -6.0, 1.0])
+    heard = np.empty((len(MICS), count))
+    for m, mic in enumerate(MICS):  # a circular fractional delay; the wrapped start is cut off
+        delay = np.linalg.norm(position - mic) / SPEED_OF_SOUND * FS
+        heard[m] = np.fft.irfft(source * np.exp(-2j * np.pi * frequencies * delay), n=count + 2 * FS)[FS:FS + count]
+    heard = resample_at_clock(heard, FS, np.zeros(len(MICS)), drifts)
+    noise = rng.standard_normal(heard.shape) * 10 ** (-snr_db / 20)
+    return ArrayAudio((heard + noise).astype(np.float32), FS, 0.0, MICS)
+
+
+def test_the_drifts_of_the_nodes_are_read_off_a_static_source():
+    found = static_source_drift(_static_source(30.0, DRIFTS))
+    assert found is not None
+    assert found.drifts_ppm[0] == 0.0
+    assert np.abs(found.drifts_ppm - DRIFTS).max() < 0.2, found
+    assert found.share > 0.9 and found.stretches >= 10
+    assert np.all(found.drifts_std_ppm[1:] > 0) and np.all(found.drifts_std_ppm < 0.2)
+
+
+def test_without_a_static_source_there_is_no_drift():
+    rng = np.random.default_rng(1)
+    incoherent = ArrayAudio(rng.standard_normal((4, 20 * FS)).astype(np.float32), FS, 0.0, MICS)
+    assert static_source_drift(incoherent) is None
+
+
+@pytest.fixture(scope="module")
+def flying_drone():
+    """15 s of a loud drone flying in quiet air with no static source (no HVAC), all nodes on one clock."""
+    quiet = AmbientConfig(level_dba=(45.0, 45.0), wind_speed=(0.0, 0.0), hvac=False)
+    flying = TrajectoryConfig(hover_probability=0.0, cruise_speed_median=3.0, cruise_speed_sigma=0.1)
+    config = SimulationConfig(duration=15.0, drone="m300", camera=False, lidar_sensors=(), trajectory=flying,
+                              audio=dataclasses.replace(AudioConfig(), ambient=quiet))
+    return simulate_recording(config, seed=6)
+
+
+def test_a_moving_drone_is_not_taken_for_a_static_source(flying_drone):
+    assert static_source_drift(flying_drone.audio) is None
+
+
+def test_a_pair_whose_line_is_another_sources_is_left_out():
+    pairs = mic_pairs(4)
+    slopes = np.array([DRIFTS[j] - DRIFTS[i] for i, j in pairs])
+    stds, shares = np.full(len(pairs), 0.05), np.ones(len(pairs))
+    assert np.allclose(_node_drifts(pairs, slopes, stds, shares, 0.5, 1.0, 100.0, 30).drifts_ppm, DRIFTS)
+    wrong = slopes.copy()
+    wrong[0] += 30.0  # pair (0, 1) followed a moving source
+    found = _node_drifts(pairs, wrong, stds, shares, 0.5, 1.0, 100.0, 30)
+    assert np.allclose(found.drifts_ppm, DRIFTS)
+    # without a pair to spare nothing checks the rest: no drifts
+    few = np.array([0.6, 0.6, 0.6, 0.0, 0.0, 0.0])
+    assert _node_drifts(pairs, slopes, stds, few, 0.5, 1.0, 100.0, 30) is None
+    # two pairs that disagree and nothing to tell which is right: none
+    assert _node_drifts(pairs, wrong, stds, np.array([1, 1, 1, 1, 0, 0.0]), 0.5, 1.0, 100.0, 30) is None
+
+
+def test_the_calibration_takes_the_static_sources_drifts_and_fits_the_offsets_alone():
+    """A drone flying over a rooftop HVAC unit, the nodes on drifting clocks with offsets."""
+    offsets, drifts = [0.0, 0.4e-3, -0.7e-3, 1.1e-3], [0.0, 9.0, -14.0, 6.0]
+    flying = TrajectoryConfig(hover_probability=0.0, cruise_speed_median=3.0, cruise_speed_sigma=0.1)
+    ambient = AmbientConfig(level_dba=(50.0, 50.0), wind_speed=(0.0, 0.0), hvac_relative_db=(0.0, 0.0))
+    audio_config = dataclasses.replace(AudioConfig(), ambient=ambient, clock_offset_s=offsets, clock_drift_ppm=drifts)
+    recording = simulate_recording(SimulationConfig(duration=30.0, drone="m300", camera=False, lidar_sensors=(),
+                                                    trajectory=flying, audio=audio_config), seed=3)
+    config = ClockCalibrationConfig()
+    static = static_drifts(recording.audio, config)
+    assert static is not None and np.abs(static.drifts_ppm - drifts).max() < 0.5, static
+    found = estimate_clock_offsets(recording.audio, config)
+    assert np.array_equal(found.drifts_ppm, static.drifts_ppm) and found.static_drift
+    assert "drifts (ppm, from a static source)" in found.summary() and found.meta()["static_drift"] is True
+    assert ClockCalibration.from_array(found.to_array()).static_drift
+    times = np.linspace(0.0, recording.audio.duration, 20)
+    truth = np.asarray(offsets) + np.asarray(drifts) * 1e-6 * times[:, None]
+    assert np.abs(found.offsets_at(times) - truth).max() < 5e-5, found.summary()
