@@ -125,10 +125,10 @@ class ClockCalibration:
     drifts_std_ppm: np.ndarray
     frames: int  #: frames used
     residual_rms_s: float  #: robust RMS of the fit's residuals (s)
-    #: the drifts were told by a static source (:func:`static_drifts`), not fitted with the offsets
-    static_drift: bool = False
     positions: np.ndarray = field(repr=False, default_factory=lambda: np.zeros((0, 3)))  #: per frame (m)
     times: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))  #: frame centres (s from sample 0)
+    #: the drifts were told by a static source (:func:`static_drifts`), not fitted with the offsets
+    static_drift: bool = False
 
     def offsets_at(self, t: float | np.ndarray) -> np.ndarray:
         """Each node's offset (s) at ``t`` seconds after the first sample (..., nodes)."""

@@ -337,7 +337,7 @@ def test_a_fit_with_a_drift_no_crystal_has_is_refused(monkeypatch):
                                              np.zeros((frames, 6)), np.full(frames, 10.0))
     fitted = ClockCalibration(np.array([0.0, 1e-3, 0.0, 0.0]), np.full(4, 1e-5), np.array([0.0, 300.0, 0.0, 0.0]),
                               np.ones(4), frames=frames, residual_rms_s=1e-5)
-    monkeypatch.setattr(calibration, "measure", lambda audio, config: measured)
+    monkeypatch.setattr(calibration, "measure", lambda audio, config, drifts_ppm=None: measured)
     monkeypatch.setattr(calibration, "_initial_positions", lambda mics, m, used, config: np.zeros((used.size, 3)))
     monkeypatch.setattr(calibration, "_fit", lambda *args: fitted)
     mics = np.array([[1.5, 1.5, 0.2], [-1.5, 1.5, 0.7], [-1.5, -1.5, 1.2], [1.5, -1.5, 1.7]])
