@@ -19,11 +19,9 @@ from datamodules.features.clock_calibration import (
 )
 from datamodules.features.clock_following import combine_clock_estimates, consistent_estimates
 from datamodules.recording import ArrayAudio
-from datamodules.simulate.acoustics import AudioConfig
-from datamodules.simulate.ambient import AmbientConfig
 from datamodules.simulate.clocks import resample_at_clock
-from datamodules.simulate.simulator import SimulationConfig, simulate_recording
-from datamodules.simulate.trajectory import TrajectoryConfig
+from datamodules.simulate.simulator import simulate_recording
+from tests.helpers.flights import flying_m300
 
 OFFSETS = np.array([0.0, 0.0, 0.8e-3, 0.0])  #: node 2 samples 0.8 ms late
 TOLERANCE = 5e-5  #: 0.05 ms
@@ -34,11 +32,7 @@ CONFIG = ClockCalibrationConfig(jackknife_blocks=3)
 def shared_recording():
     """12 s of a loud drone flying (no hover: the calibration needs the geometry to change) in quiet air, all
     nodes on one clock."""
-    quiet = AmbientConfig(level_dba=(45.0, 45.0), wind_speed=(0.0, 0.0), hvac=False)
-    flying = TrajectoryConfig(hover_probability=0.0, cruise_speed_median=3.0, cruise_speed_sigma=0.1)
-    config = SimulationConfig(duration=12.0, drone="m300", camera=False, lidar_sensors=(), trajectory=flying,
-                              audio=dataclasses.replace(AudioConfig(), ambient=quiet))
-    return simulate_recording(config, seed=6)
+    return simulate_recording(flying_m300(12.0), seed=6)
 
 
 def late(audio: ArrayAudio, offsets: np.ndarray) -> ArrayAudio:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 
@@ -16,10 +14,9 @@ from datamodules.features.clock_calibration import (
 from datamodules.features.phase import SPEED_OF_SOUND, mic_pairs
 from datamodules.features.static_drift import StaticDrift, _node_drifts, static_source_drift
 from datamodules.recording import ArrayAudio
-from datamodules.simulate.acoustics import AudioConfig
 from datamodules.simulate.ambient import AmbientConfig
-from datamodules.simulate.simulator import SimulationConfig, simulate_recording
-from datamodules.simulate.trajectory import TrajectoryConfig
+from datamodules.simulate.simulator import simulate_recording
+from tests.helpers.flights import flying_m300
 
 FS = 48000
 MICS = np.array([[0.0, 0.0, 0.0], [1.6, 0.0, 0.1], [0.0, 1.6, 0.2], [1.6, 1.6, 0.0]])
@@ -61,11 +58,7 @@ def test_without_a_static_source_there_is_no_drift():
 @pytest.fixture(scope="module")
 def flying_drone():
     """15 s of a loud drone flying in quiet air with no static source (no HVAC), all nodes on one clock."""
-    quiet = AmbientConfig(level_dba=(45.0, 45.0), wind_speed=(0.0, 0.0), hvac=False)
-    flying = TrajectoryConfig(hover_probability=0.0, cruise_speed_median=3.0, cruise_speed_sigma=0.1)
-    config = SimulationConfig(duration=15.0, drone="m300", camera=False, lidar_sensors=(), trajectory=flying,
-                              audio=dataclasses.replace(AudioConfig(), ambient=quiet))
-    return simulate_recording(config, seed=6)
+    return simulate_recording(flying_m300(15.0), seed=6)
 
 
 def test_a_moving_drone_is_not_taken_for_a_static_source(flying_drone):
@@ -125,11 +118,8 @@ def test_the_calibration_corrects_for_the_static_drifts_and_fits_the_offsets_alo
 def test_the_calibration_takes_the_static_sources_drifts_and_fits_the_offsets_alone():
     """A drone flying over a rooftop HVAC unit, the nodes on drifting clocks with offsets."""
     offsets, drifts = [0.0, 0.4e-3, -0.7e-3, 1.1e-3], [0.0, 9.0, -14.0, 6.0]
-    flying = TrajectoryConfig(hover_probability=0.0, cruise_speed_median=3.0, cruise_speed_sigma=0.1)
     ambient = AmbientConfig(level_dba=(50.0, 50.0), wind_speed=(0.0, 0.0), hvac_relative_db=(0.0, 0.0))
-    audio_config = dataclasses.replace(AudioConfig(), ambient=ambient, clock_offset_s=offsets, clock_drift_ppm=drifts)
-    recording = simulate_recording(SimulationConfig(duration=30.0, drone="m300", camera=False, lidar_sensors=(),
-                                                    trajectory=flying, audio=audio_config), seed=3)
+    recording = simulate_recording(flying_m300(30.0, ambient, clock_offset_s=offsets, clock_drift_ppm=drifts), seed=3)
     config = ClockCalibrationConfig()
     static = static_drifts(recording.audio, config)
     assert static is not None and np.abs(static.drifts_ppm - drifts).max() < 0.5, static

@@ -2,18 +2,15 @@
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 
 import numpy as np
 import pytest
 
 from datamodules.features import phase_recipe
-from datamodules.simulate.acoustics import AudioConfig
-from datamodules.simulate.ambient import AmbientConfig
 from datamodules.simulate.clocks import resample_at_clock
-from datamodules.simulate.simulator import SimulationConfig, simulate_recording
-from datamodules.simulate.trajectory import TrajectoryConfig
+from datamodules.simulate.simulator import simulate_recording
+from tests.helpers.flights import flying_m300
 from zoo.deploy.live_clocks import CalibratingPhase
 
 OFFSETS = np.array([0.0, 0.3e-3, 0.8e-3, 0.0])  #: per node (s)
@@ -24,11 +21,7 @@ BLOCK = 4800
 @pytest.fixture(scope="module")
 def drifting():
     """12 s of a loud drone flying in quiet air, recorded by nodes whose clocks are offset and one drifts."""
-    quiet = AmbientConfig(level_dba=(45.0, 45.0), wind_speed=(0.0, 0.0), hvac=False)
-    flying = TrajectoryConfig(hover_probability=0.0, cruise_speed_median=3.0, cruise_speed_sigma=0.1)
-    config = SimulationConfig(duration=12.0, drone="m300", camera=False, lidar_sensors=(), trajectory=flying,
-                              audio=dataclasses.replace(AudioConfig(), ambient=quiet))
-    audio = simulate_recording(config, seed=6).audio
+    audio = simulate_recording(flying_m300(12.0), seed=6).audio
     samples = resample_at_clock(audio.read(0, audio.num_samples), audio.sample_rate, OFFSETS, DRIFTS)
     return samples, audio.sample_rate, audio.mic_positions
 
