@@ -38,8 +38,9 @@ class StaticDrift:
     stretches: int
 
 
-def _stretch_correlations(audio: AudioStream, gcc: GccPhat, per: int, count: int) -> np.ndarray:
-    """PHAT correlation of each stretch's mean cross-spectrum: pairs x stretches x lags (float64)."""
+def _stretch_correlations(audio: AudioStream, gcc: GccPhat, per: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """PHAT correlation of the mean cross-spectrum of ``count`` stretches of ``per`` frames spread over the audio:
+    pairs x stretches x lags (float64; NaN for a stretch holding NaN samples), and the stretches' first samples."""
     span = per * gcc.frame
     starts = np.linspace(0, audio.num_samples - span, count).round().astype(int) if count > 1 else np.array([0])
     out = []
@@ -52,7 +53,7 @@ def _stretch_correlations(audio: AudioStream, gcc: GccPhat, per: int, count: int
             frames = torch.from_numpy(np.ascontiguousarray(samples)).reshape(samples.shape[0], per, gcc.frame)
             cross = gcc.cross_spectra(frames).to(torch.complex128).mean(dim=1, keepdim=True)
             out.append(gcc.correlate(cross)[:, 0].double().numpy())
-    shape = next((c.shape for c in out if c is not None), None)
+    shape = next((c.shape for c in out if c is not None), (len(gcc.first), 2 * gcc.half + 1))
     return np.stack([np.full(shape, np.nan) if c is None else c for c in out], axis=1), starts
 
 
@@ -115,7 +116,7 @@ def _line(corr: np.ndarray, t: np.ndarray, lags: np.ndarray, rate: float, max_sl
 
 def static_source_drift(audio: AudioStream, *, f_min: float = 300.0, f_max: float = 8000.0,
                         frame_seconds: float = 4096 / 48000, lag_rate: float = 96000.0, max_delay: float = 0.02,
-                        stretch_seconds: float = 2.0, min_stretches: int = 10, max_stretches: int = 300, cell: int = 8,
+                        stretch_seconds: float = 2.0, min_stretches: int = 10, max_stretches: int = 120, cell: int = 8,
                         tolerance: float = 2e-5, min_share: float = 0.5, max_drift_ppm: float = 100.0,
                         max_misfit_ppm: float = 1.0) -> StaticDrift | None:
     """The node drifts of ``audio`` from a static source (see the module docstring), or None when none tells them.

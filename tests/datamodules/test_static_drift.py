@@ -53,6 +53,17 @@ def test_without_a_static_source_there_is_no_drift():
     rng = np.random.default_rng(1)
     incoherent = ArrayAudio(rng.standard_normal((4, 20 * FS)).astype(np.float32), FS, 0.0, MICS)
     assert static_source_drift(incoherent) is None
+    assert static_source_drift(_static_source(12.0, DRIFTS)) is None  # 6 stretches of 2 s: too few to tell
+
+
+def test_stretches_holding_nan_samples_are_left_out():
+    audio = _static_source(30.0, DRIFTS)
+    samples = audio.read(0, audio.num_samples)
+    samples[:, 5 * FS:7 * FS] = np.nan
+    found = static_source_drift(ArrayAudio(samples, FS, 0.0, MICS))
+    assert found is not None and np.abs(found.drifts_ppm - DRIFTS).max() < 0.2
+    samples[:] = np.nan
+    assert static_source_drift(ArrayAudio(samples, FS, 0.0, MICS)) is None
 
 
 @pytest.fixture(scope="module")
