@@ -35,7 +35,7 @@ class StaticDrift:
     drifts_std_ppm: np.ndarray  #: per node, from the pairs' line fits
     pair_slopes_ppm: np.ndarray  #: per pair ``(i, j)``: ``drift_j - drift_i`` as its line says
     share: float  #: the smallest share, over pairs, of stretches with a peak on the pair's line
-    stretches: int
+    stretches: int  #: stretches correlated (those holding NaN samples left out)
 
 
 def _stretch_correlations(audio: AudioStream, gcc: GccPhat, per: int, count: int) -> tuple[np.ndarray, np.ndarray]:
