@@ -43,7 +43,14 @@ import numpy as np
 import torch
 
 from datamodules.errors import ConfigError
-from datamodules.features.phase import SPEED_OF_SOUND, GccPhat, PhaseRecipe, correct_cross_spectra, mic_pairs
+from datamodules.features.phase import (
+    SPEED_OF_SOUND,
+    GccPhat,
+    PhaseRecipe,
+    correct_cross_spectra,
+    mic_pairs,
+    parabolic_offset,
+)
 from datamodules.features.static_drift import StaticDrift, static_source_drift
 from datamodules.recording import AudioStream, RecordingError
 
@@ -203,6 +210,13 @@ def _interp(corr: np.ndarray, lags: np.ndarray, rate: float, half: int) -> np.nd
     return np.where(inside, value, 0.0)
 
 
+def _max_tdoa(mics: np.ndarray, config: ClockCalibrationConfig) -> float:
+    """The largest pair time difference searched (s): the widest pair's geometric delay plus ``max_offset``."""
+    mics = np.asarray(mics, dtype=np.float64)
+    spread = max(np.linalg.norm(mics[i] - mics[j]) for i, j in mic_pairs(mics.shape[0])) / config.speed_of_sound
+    return spread + config.max_offset
+
+
 def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibrationConfig(),
             drifts_ppm: np.ndarray | None = None) -> FrameMeasurements:
     """Reflection delays and multipath-matched pair time differences of blocks spread over ``audio``.
@@ -222,8 +236,7 @@ def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibratio
                                     f"(z > {config.ground_height} m), got heights {heights.tolist()}")
     max_reflection = 2 * heights / c
     pairs = mic_pairs(channels)
-    spread = max(np.linalg.norm(mics[i] - mics[j]) for i, j in pairs) / c
-    max_tdoa = spread + config.max_offset
+    max_tdoa = _max_tdoa(mics, config)
     recipe = PhaseRecipe("clock_calibration", frame_seconds=config.frame_seconds, frames=config.block_frames,
                          max_delay=max_tdoa + float(max_reflection.max()) + 1e-3, lag_rate=config.lag_rate,
                          f_min=config.f_min, f_max=config.f_max)
@@ -258,11 +271,12 @@ def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibratio
             return correct_cross_spectra(cross, band_freqs, drift, gcc.first, gcc.second)
 
         block_spectra = [spectra_of(start) for start in starts]  # each C x F x K, read and transformed once
-        block_cross = [cross_of(spectra, start) for spectra, start in zip(block_spectra, starts, strict=True)]
-        static = sum(cross.mean(dim=1) for cross in block_cross) / len(starts)
+        # the pairs' cross-spectra are formed again below rather than kept: 3x the spectra's memory
+        static = sum(cross_of(spectra, start).mean(dim=1) for spectra, start in zip(block_spectra, starts,
+                                                                                     strict=True)) / len(starts)
         corr_blocks, cepstrum_blocks = [], []
-        for spectra, cross in zip(block_spectra, block_cross, strict=True):
-            cross = cross - static[:, None, :]
+        for spectra, start in zip(block_spectra, starts, strict=True):
+            cross = cross_of(spectra, start) - static[:, None, :]
             corr_blocks.append(gcc.correlate(cross).mean(dim=1).double())
             log_power = torch.log(spectra.abs().double() ** 2 + 1e-30)
             relative = log_power - log_power.mean(dim=0, keepdim=True)
@@ -277,7 +291,7 @@ def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibratio
     # reflection delays: the peak of each channel's cepstrum below its 2 h / c
     cepstrum[np.broadcast_to(quefrency > max_reflection[:, None, None], cepstrum.shape)] = -np.inf
     best = cepstrum.argmax(axis=-1)
-    reflection = (quefrency[best] + _parabolic(cepstrum, best) * config.quefrency_step).T  # B x C
+    reflection = (quefrency[best] + parabolic_offset(cepstrum, best) * config.quefrency_step).T  # B x C
 
     # pair time differences: the lag whose four multipath peaks score highest
     lag_grid = np.arange(-half, half + 1) / rate
@@ -291,22 +305,11 @@ def measure(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibratio
         total = (_interp(g, d, rate, half) + _interp(g, d + ti, rate, half) + _interp(g, d - tj, rate, half)
                  + _interp(g, d + ti - tj, rate, half))
         k = total.argmax(axis=1)
-        tdoa[:, p] = candidates[k] + _parabolic(total, k) / rate
+        tdoa[:, p] = candidates[k] + parabolic_offset(total, k) / rate
         noise = 1.4826 * np.median(np.abs(g - np.median(g, axis=1, keepdims=True)), axis=1)
         score[:, p] = total[np.arange(blocks), k] / 4 / np.maximum(noise, 1e-12)
     times = (starts + gcc.frame * config.block_frames / 2) / fs
     return FrameMeasurements(times, reflection, tdoa, score.mean(axis=1))
-
-
-def _parabolic(values: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Sub-step offset (-0.5 .. 0.5) of the peak at ``index`` along the last axis of ``values``."""
-    idx = np.clip(index, 1, values.shape[-1] - 2)[..., None]
-    y0, y1, y2 = (np.take_along_axis(values, idx + d, -1)[..., 0] for d in (-1, 0, 1))
-    denominator = y0 - 2 * y1 + y2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        shift = np.where(np.isfinite(denominator) & (denominator < 0), 0.5 * (y0 - y2) / denominator, 0.0)
-    shift = np.clip(np.nan_to_num(shift), -0.5, 0.5)
-    return np.where(idx[..., 0] == index, shift, 0.0)
 
 
 # ------------------------------------------------------------------------------ fit
@@ -435,10 +438,8 @@ def _initial_positions(mics: np.ndarray, m: FrameMeasurements, frames: np.ndarra
 def static_drifts(audio: AudioStream, config: ClockCalibrationConfig = ClockCalibrationConfig()) -> StaticDrift | None:
     """The nodes' drifts told by a static source in ``audio``, searched as far as ``config`` searches the pairs'
     time differences (:func:`~datamodules.features.static_drift.static_source_drift`), or None."""
-    mics = np.asarray(audio.mic_positions, dtype=np.float64)
-    spread = max(np.linalg.norm(mics[i] - mics[j]) for i, j in mic_pairs(audio.num_channels)) / config.speed_of_sound
     return static_source_drift(audio, f_min=config.f_min, f_max=config.f_max, frame_seconds=config.frame_seconds,
-                               lag_rate=config.lag_rate, max_delay=spread + config.max_offset,
+                               lag_rate=config.lag_rate, max_delay=_max_tdoa(audio.mic_positions, config),
                                max_drift_ppm=config.max_drift_ppm)
 
 

@@ -109,6 +109,18 @@ def mic_pairs(channels: int) -> tuple[tuple[int, int], ...]:
     return tuple((i, j) for i in range(channels) for j in range(i + 1, channels))
 
 
+def parabolic_offset(values: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Sub-step offset (-0.5 .. 0.5) of the peak at ``index`` along the last axis of ``values``, by the parabola
+    through it and its neighbours (0 at the ends, or where the three do not bend down)."""
+    idx = np.clip(index, 1, values.shape[-1] - 2)[..., None]
+    y0, y1, y2 = (np.take_along_axis(values, idx + d, -1)[..., 0] for d in (-1, 0, 1))
+    denominator = y0 - 2 * y1 + y2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        shift = np.where(np.isfinite(denominator) & (denominator < 0), 0.5 * (y0 - y2) / denominator, 0.0)
+    shift = np.clip(np.nan_to_num(shift), -0.5, 0.5)
+    return np.where(idx[..., 0] == index, shift, 0.0)
+
+
 def pair_indices(channels: int) -> tuple[torch.Tensor, torch.Tensor]:
     """The first and second microphone of every pair of :func:`mic_pairs`, as index tensors."""
     pairs = mic_pairs(channels)

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from datamodules.features.phase import GccPhat, PhaseRecipe, mic_pairs
+from datamodules.features.phase import GccPhat, PhaseRecipe, mic_pairs, parabolic_offset
 from datamodules.recording import AudioStream
 
 
@@ -92,14 +92,12 @@ def _line(corr: np.ndarray, t: np.ndarray, lags: np.ndarray, rate: float, max_sl
     slope, level = _ridge(corr, t, rate, max_slope, cell)
     centred = t - t.mean()
     expected = level + slope * centred * rate  # lag index per stretch
-    peak = np.full(t.size, np.nan)
+    index = np.empty(t.size, dtype=np.int64)
     for m in range(t.size):
         lo = int(np.clip(np.floor(expected[m]) - 2 * cell, 1, corr.shape[1] - 2))
         hi = int(np.clip(np.ceil(expected[m]) + 2 * cell, lo + 1, corr.shape[1] - 1))
-        i = lo + int(corr[m, lo:hi].argmax())
-        y0, y1, y2 = corr[m, i - 1], corr[m, i], corr[m, i + 1]
-        bend = y0 - 2 * y1 + y2
-        peak[m] = lags[i] + (np.clip(0.5 * (y0 - y2) / bend, -0.5, 0.5) if bend < 0 else 0.0) / rate
+        index[m] = lo + int(corr[m, lo:hi].argmax())
+    peak = lags[index] + parabolic_offset(corr, index) / rate
     coef = np.array([level / rate + lags[0], slope])
     on = np.zeros(t.size, dtype=bool)
     for limit in (2 * cell / rate, tolerance, tolerance):  # from the ridge's cells down to the tolerance
